@@ -1,0 +1,34 @@
+# Two commands do all set-up on a fresh machine: `make demo` and `make test`.
+PY ?= python3
+VENV := .venv
+VPY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+
+.PHONY: demo test lint bench clean
+
+$(VPY):
+	$(PY) -m venv $(VENV)
+
+# CPU torch first (where no torch is present) so that pip does not pull the multi-GB CUDA build.
+$(STAMP): $(VPY) pyproject.toml
+	$(VPY) -m pip install -q --upgrade pip
+	$(VPY) -c "import torch" 2>/dev/null || $(VPY) -m pip install -q torch==2.13.0
+	$(VPY) -m pip install -q -e ".[dev]"
+	touch $(STAMP)
+
+demo: $(STAMP)
+	$(VPY) -m torchpf.demo --out out
+
+test: $(STAMP)
+	$(VPY) -m ruff check torchpf priors training tests benchmarks
+	$(VPY) -m pytest -q -n 2
+
+lint: $(STAMP)
+	$(VPY) -m ruff format torchpf priors training tests benchmarks
+	$(VPY) -m ruff check --fix torchpf priors training tests benchmarks
+
+bench: $(STAMP)
+	$(VPY) benchmarks/fk.py
+
+clean:
+	rm -rf $(VENV) out .pytest_cache

@@ -1,0 +1,1 @@
+"""priors: motion models and importance distributions for articulated tracking (depends on torchpf)."""

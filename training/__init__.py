@@ -1,0 +1,1 @@
+"""training: mocap I/O and fitting of action models from mocap CSV (depends on priors, torchpf)."""
