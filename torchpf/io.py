@@ -1,0 +1,298 @@
+"""File helpers shared by the packages: atomic writes and the mocap CSV format.
+
+Mocap CSV (``DESIGN.md``): a header row, an optional first column ``time`` (s), then one column per DOF
+named as in ``Skeleton.dof_names`` (radians / metres), one row per frame::
+
+    time,Hips_Xposition,Hips_Yposition,...,LeftUpLeg_Zrotation,...
+    0.0,0.50077,-1.78968,...,0.1312,...
+    0.008333,0.50105,-1.78970,...,0.1309,...
+
+The functions here are the low-level format (numpy arrays in, numpy arrays out), shared by ``training``
+(``training.mocap.save_csv``/``load_csv`` build a ``Motion`` on top, with the frame rate) and by torchpf's
+own writers (a synthetic sequence's ``truth.csv``). Values are written with Python's ``repr`` (the shortest
+text that reads back to the same float64), so a write/read round trip is bit-exact.
+
+Every malformed input raises :class:`MocapFormatError` (a ``ValueError``) whose message names the file, the
+line and, where it applies, the column, e.g. ``walk.csv:12: column 3 ('Hips_Zposition'): not a number: 'x'``.
+
+Example::
+
+    write_mocap_csv("truth.csv", skel.dof_names, theta, times=t)      # theta (T, D), t (T,)
+    names, times, theta = read_mocap_csv("truth.csv", expected_dof_names=skel.dof_names)
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from collections.abc import Sequence
+
+import numpy as np
+
+#: Name of the optional first column (seconds).
+TIME_COLUMN = "time"
+
+# Characters a column name may not contain: the writer does no quoting, so that any CSV reader (and a
+# person with a text editor) sees exactly one name per comma-separated field.
+_FORBIDDEN_IN_NAMES = (",", '"', "\n", "\r")
+
+
+class MocapFormatError(ValueError):
+    """Malformed mocap file (CSV or BVH). ``path``, ``line`` (1-based) and ``column`` say where."""
+
+    def __init__(
+        self,
+        message: str,
+        *,
+        path: str | os.PathLike | None = None,
+        line: int | None = None,
+        column: str | None = None,
+    ):
+        self.path = None if path is None else os.fspath(path)
+        self.line = line
+        self.column = column
+        self.reason = message
+        where = self.path if self.path is not None else "<mocap>"
+        if line is not None:
+            where += f":{line}"
+        text = f"{where}: "
+        if column is not None:
+            text += f"column {column}: "
+        super().__init__(text + message)
+
+    def __reduce__(self):  # keep keyword-only fields through pickling (multiprocessing, pytest-xdist)
+        return (_rebuild_error, (self.reason, self.path, self.line, self.column))
+
+
+def _rebuild_error(message, path, line, column):
+    return MocapFormatError(message, path=path, line=line, column=column)
+
+
+def write_text_atomic(path: str | os.PathLike, text: str) -> None:
+    """Write ``text`` to ``path`` through a temporary file in the same folder and ``os.replace``.
+
+    A crash mid-write leaves the previous file intact.
+    """
+    path = os.fspath(path)
+    folder = os.path.dirname(os.path.abspath(path))
+    os.makedirs(folder, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=folder, prefix=".tmp-", suffix=os.path.basename(path))
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8", newline="\n") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+# ----------------------------------------------------------------------------------------------- mocap CSV
+def _as_float64(values) -> np.ndarray:
+    # Tensors are accepted without importing torch here: anything with .detach() is moved to host memory.
+    if hasattr(values, "detach"):
+        values = values.detach().cpu().numpy()
+    return np.asarray(values, dtype=np.float64)
+
+
+def _check_names(dof_names: Sequence[str], path) -> list[str]:
+    names = list(dof_names)
+    for i, n in enumerate(names):
+        if not isinstance(n, str) or not n or n != n.strip() or any(c in n for c in _FORBIDDEN_IN_NAMES):
+            raise ValueError(
+                f"{path}: DOF name {i} is {n!r}: names must be non-empty strings without surrounding "
+                f"whitespace, commas, quotes or line breaks"
+            )
+        if n == TIME_COLUMN:
+            raise ValueError(f"{path}: a DOF may not be named {TIME_COLUMN!r} (reserved for the time column)")
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise ValueError(f"{path}: duplicate DOF names {dup}")
+    return names
+
+
+def write_mocap_csv(
+    path: str | os.PathLike,
+    dof_names: Sequence[str],
+    values,
+    times=None,
+) -> None:
+    """Write a mocap CSV atomically (a crash leaves any previous file intact).
+
+    Args:
+        path: file to write; parent folders are created.
+        dof_names: (D,) column names, e.g. ``Skeleton.dof_names``. Non-empty, unique, no ``,``/``"``/line
+            breaks/surrounding whitespace, not ``"time"``.
+        values: (T, D) finite values (rad / m); numpy array, torch tensor or nested lists.
+        times: optional (T,) finite, strictly increasing times (s), written as the first column ``time``.
+
+    Every value is written with full float64 precision (``repr``), so :func:`read_mocap_csv` gives back the
+    same bits.
+    """
+    names = _check_names(dof_names, os.fspath(path))
+    arr = _as_float64(values)
+    if arr.ndim != 2 or arr.shape[1] != len(names):
+        raise ValueError(f"{os.fspath(path)}: values must have shape (T, {len(names)}), got {arr.shape}")
+    bad = np.argwhere(~np.isfinite(arr))
+    if len(bad):
+        t, d = bad[0]
+        raise ValueError(f"{os.fspath(path)}: values[{t}, {d}] ({names[d]!r}) is {arr[t, d]}; must be finite")
+    header = names
+    if times is not None:
+        t_arr = _as_float64(times)
+        if t_arr.shape != (arr.shape[0],):
+            raise ValueError(f"{os.fspath(path)}: times must have shape ({arr.shape[0]},), got {t_arr.shape}")
+        if not np.isfinite(t_arr).all() or np.any(np.diff(t_arr) <= 0):
+            raise ValueError(f"{os.fspath(path)}: times must be finite and strictly increasing")
+        arr = np.concatenate([t_arr[:, None], arr], axis=1)
+        header = [TIME_COLUMN, *names]
+    # float.__repr__ is the shortest string that round-trips; tolist() gives Python floats (numpy scalars'
+    # repr would read "np.float64(...)").
+    lines = [",".join(header)]
+    lines.extend(",".join(map(repr, row)) for row in arr.tolist())
+    write_text_atomic(path, "\n".join(lines) + "\n")
+
+
+def _column_label(index: int, name: str) -> str:
+    return f"{index + 1} ({name!r})"
+
+
+def read_mocap_csv(
+    path: str | os.PathLike,
+    expected_dof_names: Sequence[str] | None = None,
+) -> tuple[list[str], np.ndarray | None, np.ndarray]:
+    """Read a mocap CSV.
+
+    Args:
+        path: the file (UTF-8; LF or CRLF line ends; trailing blank lines are ignored).
+        expected_dof_names: if given, the file must have exactly these DOF columns (in any order) and the
+            result is returned in this order; otherwise columns come back in file order.
+
+    Returns:
+        ``(dof_names, times, values)``: ``dof_names`` (D,) list of str; ``times`` (T,) float64 seconds, or
+        ``None`` when the file has no ``time`` column; ``values`` (T, D) float64.
+
+    Raises:
+        MocapFormatError: empty file, empty/duplicate/misplaced column names, columns that differ from
+            ``expected_dof_names`` (unknown or missing), a row with the wrong number of fields, a field that
+            is not a number or is NaN/inf, times not strictly increasing. The message names file, line and
+            column.
+        FileNotFoundError: no such file.
+    """
+    path = os.fspath(path)
+    try:
+        with open(path, encoding="utf-8-sig", newline="") as f:  # -sig: tolerate a BOM from spreadsheets
+            text = f.read()
+    except UnicodeDecodeError as e:
+        raise MocapFormatError(f"not UTF-8 text ({e.reason} at byte {e.start})", path=path) from None
+    lines = text.replace("\r\n", "\n").replace("\r", "\n").split("\n")
+    while lines and not lines[-1].strip():
+        lines.pop()
+    if not lines:
+        raise MocapFormatError("empty file (expected a header row of column names)", path=path, line=1)
+
+    header = [h.strip() for h in lines[0].split(",")]
+    for i, h in enumerate(header):
+        if not h:
+            raise MocapFormatError("empty column name", path=path, line=1, column=str(i + 1))
+        if h == TIME_COLUMN and i > 0:
+            raise MocapFormatError(
+                f"{TIME_COLUMN!r} must be the first column", path=path, line=1, column=_column_label(i, h)
+            )
+    seen: dict[str, int] = {}
+    for i, h in enumerate(header):
+        if h in seen:
+            raise MocapFormatError(
+                f"duplicate column name (also column {seen[h] + 1})",
+                path=path,
+                line=1,
+                column=_column_label(i, h),
+            )
+        seen[h] = i
+    has_time = header[0] == TIME_COLUMN
+    first = 1 if has_time else 0
+    names = header[first:]
+
+    order = None
+    if expected_dof_names is not None:
+        expected = list(expected_dof_names)
+        if len(set(expected)) != len(expected):
+            raise ValueError(
+                f"expected_dof_names has duplicates: {sorted({n for n in expected if expected.count(n) > 1})}"
+            )
+        exp_set, name_set = set(expected), set(names)
+        unknown = [n for n in names if n not in exp_set]
+        missing = [n for n in expected if n not in name_set]
+        if unknown or missing:
+            parts = []
+            if unknown:
+                parts.append(f"unknown column(s) {unknown}")
+            if missing:
+                parts.append(f"missing column(s) {missing}")
+            col = _column_label(header.index(unknown[0]), unknown[0]) if unknown else None
+            raise MocapFormatError(
+                "columns do not match the expected DOF names: " + "; ".join(parts),
+                path=path,
+                line=1,
+                column=col,
+            )
+        order = [first + names.index(n) for n in expected]
+        names = expected
+
+    n_cols = len(header)
+    rows = lines[1:]
+    tokens: list[str] = []
+    for k, line in enumerate(rows):
+        n = line.count(",") + 1
+        if n != n_cols or not line.strip():
+            what = "empty line" if not line.strip() else f"{n} fields"
+            raise MocapFormatError(f"expected {n_cols} fields, got {what}", path=path, line=k + 2)
+        tokens.extend(line.split(","))
+    data = _parse_floats(tokens, n_cols, header, path, first_line=2)
+
+    bad = np.argwhere(~np.isfinite(data))
+    if len(bad):
+        r, c = bad[0]
+        raise MocapFormatError(
+            f"value must be finite, got {tokens[r * n_cols + c].strip()!r}",
+            path=path,
+            line=int(r) + 2,
+            column=_column_label(int(c), header[c]),
+        )
+    times = None
+    if has_time:
+        times = data[:, 0].copy()
+        steps = np.diff(times)
+        if np.any(steps <= 0):
+            r = int(np.argmax(steps <= 0)) + 1
+            raise MocapFormatError(
+                f"times must be strictly increasing ({times[r - 1]!r} then {times[r]!r})",
+                path=path,
+                line=r + 2,
+                column=_column_label(0, TIME_COLUMN),
+            )
+    values = data[:, order] if order is not None else data[:, first:]
+    return names, times, np.ascontiguousarray(values)
+
+
+def _parse_floats(
+    tokens: list[str], n_cols: int, header: Sequence[str], path: str, first_line: int
+) -> np.ndarray:
+    """(R, n_cols) float64 from row-major string fields; names the first bad field on failure."""
+    try:
+        flat = np.array(tokens, dtype=np.float64)
+    except ValueError:
+        # Slow path only to locate the culprit for the message.
+        for i, tok in enumerate(tokens):
+            try:
+                float(tok)
+            except ValueError:
+                r, c = divmod(i, n_cols)
+                raise MocapFormatError(
+                    f"not a number: {tok.strip()!r}",
+                    path=path,
+                    line=r + first_line,
+                    column=_column_label(c, header[c]),
+                ) from None
+        raise  # numpy rejected something Python accepts: let its message through
+    return flat.reshape(-1, n_cols)
