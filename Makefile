@@ -17,7 +17,7 @@ $(STAMP): $(VPY) pyproject.toml
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(VPY) -m torchpf.demo --out out
+	$(VPY) -m training.demo --out out
 
 test: $(STAMP)
 	$(VPY) -m ruff check torchpf priors training tests benchmarks
