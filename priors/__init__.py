@@ -1,1 +1,36 @@
-"""priors: motion models and importance distributions for articulated tracking (depends on torchpf)."""
+"""priors: motion models and importance distributions for articulated tracking (depends on torchpf).
+
+* :mod:`priors.motion`: ``AngularRandomWalk`` (Hauberg eq. 3), ``ConstantVelocity`` (Rius eq. 3),
+  ``DampedSecondOrder`` (Brubaker eq. 13), ``ProjectedGaussian`` (Hauberg eq. 6-7).
+* :mod:`priors.proposals`: data-driven importance distributions ``SilhouetteGuided`` (Hauberg eq. 12),
+  ``DepthGuided`` (Hauberg eq. 13-14) and the ``AngularRejection`` baseline (Hauberg eq. 4).
+* :mod:`priors.action`: the action model Γ = (Ω, ĝ, σ) and ``ActionConstrained`` dynamics (Rius eq. 1-6).
+
+Each prior is an ``nn.Module`` with ``sample(particles, generator)`` and ``log_prob(new, old)`` where it is
+tractable, the duck-typed dynamics protocol of :mod:`torchpf.filters.protocols`.
+"""
+
+from importlib import import_module
+
+# Resolved lazily so that each submodule can be imported (and developed) on its own.
+_LAZY = {
+    "AngularRandomWalk": "priors.motion",
+    "ConstantVelocity": "priors.motion",
+    "DampedSecondOrder": "priors.motion",
+    "ProjectedGaussian": "priors.motion",
+    "SilhouetteGuided": "priors.proposals",
+    "DepthGuided": "priors.proposals",
+    "AngularRejection": "priors.proposals",
+    "ActionModel": "priors.action",
+    "ActionConstrained": "priors.action",
+}
+
+
+def __getattr__(name):
+    if name in _LAZY:
+        return getattr(import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'priors' has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(list(globals()) + list(_LAZY))
