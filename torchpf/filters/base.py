@@ -1,0 +1,312 @@
+"""Sequential importance resampling (SIR) particle filter, Brubaker Alg. 1 / Fontmarty Table 1.
+
+One frame: if the effective sample size (Brubaker eq. 18) is below ``ess_threshold * N``, resample; then move
+every particle with the proposal (the dynamics by default) and multiply its weight by the likelihood and the
+importance correction (Brubaker eq. 17, Hauberg eq. 1-2)::
+
+    log w_t^i = log w_{t-1}^i + log p(z_t | x_t^i) + log p(x_t^i | x_{t-1}^i) - log q(x_t^i | x_{t-1}^i, z_t)
+
+The last two terms cancel for the bootstrap proposal (``proposal=None``) and are not computed. The
+normaliser ``sum_i w_{t-1}^i p(z_t|x_t^i) p/q`` (normalised ``w_{t-1}``) is an unbiased estimate of
+``p(z_t | z_{1:t-1})``; its log is accumulated in ``state.log_evidence`` (an estimate of ``log p(z_{1:t})``,
+biased low by about half its variance, as every log of an unbiased estimate).
+
+A frame where every weight is ``-inf`` or NaN (the likelihood rejected every particle) keeps the predicted
+particles with uniform weights, adds nothing to the log-evidence and sets ``info["failed"]``.
+
+Example::
+
+    pf = ParticleFilter(dynamics, likelihood, n_particles=500, progress=False)
+    track = pf.run(observations, x0, generator=torch.Generator().manual_seed(0))
+    track.estimates, track.ess, track.log_evidence        # (..., T, D), (..., T), (...)
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+from tqdm.auto import tqdm
+
+from torchpf.filters import protocols as P
+from torchpf.filters.qmc import qrs_normal
+from torchpf.filters.state import ParticleState, Track, gather_particles, normalise_log_weights
+from torchpf.resampling import get_resampler
+
+_STANDARD_INFO = ("failed", "resampled", "log_evidence_increment", "ess")
+
+
+def reweight(log_weights: Tensor, increment: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Add an incremental log-weight and renormalise, in log space.
+
+    Args:
+        log_weights: ``(..., N)`` normalised log-weights before the update.
+        increment: ``(..., N)`` log of the incremental weight (NaN counts as ``-inf``).
+
+    Returns:
+        ``(log_weights (..., N), log_normaliser (...), failed (...) bool)``. ``log_normaliser`` is
+        ``logsumexp(log_weights + increment)``, the log of the evidence increment. Rows with a non-finite
+        normaliser are *failed*: they get uniform weights and a normaliser that callers must not use.
+    """
+    total = torch.nan_to_num(log_weights + increment, nan=-math.inf, posinf=math.inf, neginf=-math.inf)
+    lse = torch.logsumexp(total, -1)
+    failed = ~torch.isfinite(lse)
+    uniform = torch.full_like(total, -math.log(total.shape[-1]))
+    new = torch.where(failed.unsqueeze(-1), uniform, total - lse.unsqueeze(-1))
+    return new, lse, failed
+
+
+class ParticleFilter(nn.Module):
+    """SIR particle filter with ESS-triggered resampling (Brubaker Alg. 1).
+
+    Args:
+        dynamics: motion prior, see :class:`~torchpf.filters.protocols.Dynamics`.
+        likelihood: ``(x (..., N, D), obs) -> (..., N)`` log-likelihood.
+        proposal: importance distribution with ``sample(state, obs, generator) -> (x, log_q)``; ``None``
+            is the bootstrap filter (proposal = dynamics, no correction).
+        n_particles: ``N``; ``None`` takes it from ``x0`` at ``init``. An ``x0`` with a single particle is
+            copied ``N`` times.
+        resampler: a name registered in :mod:`torchpf.resampling` or a callable
+            ``(log_weights (..., N), generator) -> ancestors (..., N)``.
+        ess_threshold: resample at the start of a frame when ``ESS < ess_threshold * N``; ``1.0`` resamples
+            every frame, ``0.0`` never.
+        sampling: ``"mc"`` (i.i.d. draws) or ``"qrs"`` (randomised Sobol noise per resampled parent,
+            Fontmarty Table 4; needs ``dynamics.sample_from_noise`` and no proposal).
+        progress: show a tqdm bar in :meth:`run`.
+
+    The filter holds no state between calls: ``init`` / ``step`` / ``run`` take and return
+    :class:`~torchpf.filters.state.ParticleState`. It is an ``nn.Module`` so that ``.to(device)`` moves the
+    dynamics, likelihood and proposal when they are modules. Device and dtype follow ``x0``.
+    """
+
+    def __init__(
+        self,
+        dynamics: Any,
+        likelihood: Any,
+        proposal: Any = None,
+        *,
+        n_particles: int | None = None,
+        resampler: Any = "systematic",
+        ess_threshold: float = 0.5,
+        sampling: str = "mc",
+        progress: bool = True,
+    ):
+        super().__init__()
+        if not 0.0 <= ess_threshold <= 1.0:
+            raise ValueError(f"ess_threshold must be in [0, 1], got {ess_threshold}")
+        if n_particles is not None and n_particles < 1:
+            raise ValueError(f"n_particles must be positive, got {n_particles}")
+        if sampling not in ("mc", "qrs"):
+            raise ValueError(f"sampling must be 'mc' or 'qrs', got {sampling!r}")
+        if sampling == "qrs":
+            if proposal is not None:
+                raise ValueError(
+                    "sampling='qrs' draws from the dynamics; it cannot be combined with a proposal"
+                )
+            if not hasattr(dynamics, "sample_from_noise"):
+                raise ValueError("sampling='qrs' needs dynamics.sample_from_noise(x, eps)")
+        self.dynamics = dynamics
+        self.likelihood = likelihood
+        self.proposal = proposal
+        self.n_particles = n_particles
+        self.resampler = get_resampler(resampler)
+        self.ess_threshold = float(ess_threshold)
+        self.sampling = sampling
+        self.progress = progress
+
+    # ------------------------------------------------------------------ public API
+
+    def init(self, x0: Tensor, extras: Mapping[str, Tensor] | None = None) -> ParticleState:
+        """Initial state from particles ``x0 (..., N, D)`` (or ``(..., 1, D)``), uniform weights.
+
+        ``extras`` (per-particle ``(..., N, *k)`` tensors) default to ``dynamics.init_extras(x0)`` when the
+        dynamics defines it, else to none.
+        """
+        if x0.ndim < 2 or not x0.is_floating_point():
+            raise ValueError(f"x0 must be a floating tensor (..., N, D), got shape {tuple(x0.shape)}")
+        n = self.n_particles or x0.shape[-2]
+        if x0.shape[-2] == 1 and n > 1:
+            x0 = x0.expand(*x0.shape[:-2], n, x0.shape[-1]).clone()
+        elif x0.shape[-2] != n:
+            raise ValueError(f"x0 has {x0.shape[-2]} particles, the filter was built for {n}")
+        if extras is None:
+            extras = self.dynamics.init_extras(x0) if hasattr(self.dynamics, "init_extras") else {}
+        extras = dict(extras)
+        for key, value in extras.items():
+            if value.shape[: x0.ndim - 1] != x0.shape[:-1]:
+                if value.shape[: x0.ndim - 1] == x0.shape[:-2] + (1,):
+                    extras[key] = value.expand(*x0.shape[:-1], *value.shape[x0.ndim - 1 :]).clone()
+                else:
+                    raise ValueError(
+                        f"extras[{key!r}] has shape {tuple(value.shape)}, expected (..., {n}, ...)"
+                    )
+        batch = x0.shape[:-2]
+        return ParticleState(
+            particles=x0,
+            log_weights=x0.new_full(batch + (n,), -math.log(n)),
+            log_evidence=x0.new_zeros(batch),
+            extras=extras,
+            aux=self._init_aux(x0),
+        )
+
+    def forward(
+        self, state: ParticleState, obs: Any, generator: torch.Generator | None = None
+    ) -> ParticleState:
+        """Same as :meth:`step` (so the filter can sit in an ``nn.Sequential``-style pipeline)."""
+        return self.step(state, obs, generator)
+
+    def step(self, state: ParticleState, obs: Any, generator: torch.Generator | None = None) -> ParticleState:
+        """One frame of Brubaker Alg. 1: ESS-triggered resampling, propagation, weighting.
+
+        Args:
+            state: the filtering state at ``t-1``.
+            obs: the observation ``z_t`` passed unchanged to the likelihood (and proposal).
+            generator: randomness (on the particles' device); same generator state, same result.
+
+        Returns:
+            the state at ``t``, with ``info`` = ``failed``, ``resampled``, ``log_evidence_increment`` (each
+            ``(...)``). Gradients flow as the caller's grad mode says (:meth:`run` uses ``no_grad``).
+        """
+        new, _, _ = self._sir_step(state, obs, generator)
+        return new
+
+    def run(
+        self,
+        observations: Iterable[Any],
+        x0: Tensor,
+        generator: torch.Generator | None = None,
+        *,
+        extras: Mapping[str, Tensor] | None = None,
+    ) -> Track:
+        """Filter a whole sequence: ``init(x0)`` then one :meth:`step` per observation (under ``no_grad``).
+
+        Args:
+            observations: iterable over frames (a list, or a tensor whose first dim is ``T``); each item is
+                one ``obs`` for :meth:`step`. For a batch of sequences stored as ``(B, T, ...)`` pass
+                ``obs.transpose(0, 1)``.
+            x0: ``(..., N, D)`` initial particles.
+            generator: randomness; the same seed gives the same track.
+            extras: initial per-particle extras (see :meth:`init`).
+
+        Returns:
+            a :class:`~torchpf.filters.state.Track`.
+        """
+        total = len(observations) if hasattr(observations, "__len__") else None
+        means, maps, ess, incs, failed, resampled = [], [], [], [], [], []
+        stats: dict[str, list[Tensor]] = {}
+        with torch.no_grad():
+            state = self.init(x0, extras)
+            bar = tqdm(observations, total=total, desc=type(self).__name__, disable=not self.progress)
+            for obs in bar:
+                state = self.step(state, obs, generator)
+                info = state.info
+                means.append(state.mean())
+                maps.append(state.map())
+                ess.append(info["ess"] if "ess" in info else state.ess())
+                incs.append(info["log_evidence_increment"])
+                failed.append(info["failed"])
+                resampled.append(info["resampled"])
+                for key, value in info.items():
+                    if key not in _STANDARD_INFO:
+                        stats.setdefault(key, []).append(value)
+        if not means:
+            raise ValueError("observations is empty")
+        nb = state.particles.ndim - 2  # time goes right after the batch dims
+
+        def stack(values: list[Tensor]) -> Tensor:
+            return torch.stack(values, dim=nb)
+
+        return Track(
+            estimates=stack(means),
+            map_estimates=stack(maps),
+            ess=stack(ess),
+            log_evidence=state.log_evidence,
+            log_evidence_increments=stack(incs),
+            failed=stack(failed),
+            resampled=stack(resampled),
+            stats={key: stack(values) for key, values in stats.items()},
+            final_state=state,
+        )
+
+    # ------------------------------------------------------------------ building blocks for subclasses
+
+    def _init_aux(self, x0: Tensor) -> dict[str, Tensor]:
+        return {}
+
+    def _loglik(self, likelihood: Any, x: Tensor, obs: Any) -> Tensor:
+        out = likelihood(x, obs)
+        if out.shape != x.shape[:-1]:
+            raise ValueError(f"likelihood returned shape {tuple(out.shape)}, expected {tuple(x.shape[:-1])}")
+        return out.to(x.dtype)
+
+    def _maybe_resample(
+        self, state: ParticleState, generator: torch.Generator | None
+    ) -> tuple[ParticleState, Tensor, Tensor]:
+        """ESS-triggered resampling (Brubaker Alg. 1): ``(state, ancestors (..., N), resampled (...))``."""
+        log_w = normalise_log_weights(state.log_weights)
+        state = state.replace(log_weights=log_w)
+        n = state.n_particles
+        identity = torch.arange(n, device=log_w.device).expand(log_w.shape)
+        if self.ess_threshold <= 0.0:
+            return state, identity, torch.zeros(log_w.shape[:-1], dtype=torch.bool, device=log_w.device)
+        if self.ess_threshold >= 1.0:
+            need = torch.ones(log_w.shape[:-1], dtype=torch.bool, device=log_w.device)
+        else:
+            need = state.ess() < self.ess_threshold * n
+        # All sequences are resampled in one batched call and the ones above threshold keep the identity:
+        # deciding per sequence on the host would need a device sync.
+        ancestors = torch.where(need.unsqueeze(-1), self.resampler(log_w, generator), identity)
+        log_w = torch.where(need.unsqueeze(-1), torch.full_like(log_w, -math.log(n)), log_w)
+        resampled = state.select(ancestors).replace(log_weights=log_w)
+        return resampled, ancestors, need
+
+    def _sample_dynamics(
+        self,
+        x: Tensor,
+        extras: Mapping[str, Tensor],
+        ancestors: Tensor,
+        generator: torch.Generator | None,
+    ) -> Tensor:
+        """Draw from the dynamics, i.i.d. (``"mc"``) or with per-parent Sobol noise (``"qrs"``)."""
+        if self.sampling == "qrs":
+            eps = qrs_normal(ancestors, P.noise_dim(self.dynamics, x.shape[-1]), generator, x.dtype)
+            return P.dynamics_from_noise(self.dynamics, x, eps, extras)
+        return P.dynamics_sample(self.dynamics, x, extras, generator)
+
+    def _propose(
+        self, state: ParticleState, ancestors: Tensor, obs: Any, generator: torch.Generator | None
+    ) -> tuple[Tensor, Tensor | None]:
+        """New particles and ``log p(x|x_prev) - log q`` (``None`` for the bootstrap proposal)."""
+        if self.proposal is None:
+            return self._sample_dynamics(state.particles, state.extras, ancestors, generator), None
+        x, log_q = self.proposal.sample(state, obs, generator)
+        log_p = P.dynamics_log_prob(self.dynamics, x, state.particles, state.extras)
+        return x, log_p - log_q.to(x.dtype)
+
+    def _sir_step(
+        self, state: ParticleState, obs: Any, generator: torch.Generator | None
+    ) -> tuple[ParticleState, Tensor, Mapping[str, Tensor]]:
+        """Alg. 1 for one frame; also returns each particle's parent ``x_{t-1}`` and its extras."""
+        state, ancestors, resampled = self._maybe_resample(state, generator)
+        x, log_corr = self._propose(state, ancestors, obs, generator)
+        increment = self._loglik(self.likelihood, x, obs)
+        if log_corr is not None:
+            increment = increment + log_corr
+        log_w, lse, failed = reweight(state.log_weights, increment)
+        inc = torch.where(failed, torch.zeros_like(lse), lse)
+        new = ParticleState(
+            particles=x,
+            log_weights=log_w,
+            log_evidence=state.log_evidence + inc,
+            extras=P.update_extras(self.dynamics, x, state.particles, state.extras),
+            aux=state.aux,
+            info={"failed": failed, "resampled": resampled, "log_evidence_increment": inc},
+        )
+        return new, state.particles, state.extras
+
+    @staticmethod
+    def _gather(ancestors: Tensor, *tensors: Tensor) -> list[Tensor]:
+        return [gather_particles(t, ancestors) for t in tensors]
