@@ -1,0 +1,239 @@
+"""Camera model: projection against cv2.projectPoints, rigs, cameras.yaml and OpenCV FileStorage files."""
+
+import math
+import os
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from torchpf.camera import (
+    Camera,
+    CameraFileError,
+    CameraRig,
+    camera_ring,
+    load_cameras,
+    look_at,
+    project_points,
+    save_cameras,
+)
+
+
+def random_camera(rng: np.random.Generator, dist: bool = True) -> Camera:
+    rvec = rng.normal(size=3) * 0.5
+    R = cv2.Rodrigues(rvec)[0]
+    t = rng.normal(size=3) * 0.2 + np.array([0, 0, 4.0])
+    f = rng.uniform(300, 900)
+    K = np.array(
+        [[f, 0, rng.uniform(300, 340)], [0, f * rng.uniform(0.95, 1.05), rng.uniform(220, 260)], [0, 0, 1]]
+    )
+    d = np.array([0.1, -0.05, 0.001, -0.002, 0.01]) * rng.uniform(0.5, 1.5, 5) if dist else None
+    return Camera(K, R, t, d, width=640, height=480, name="c")
+
+
+@pytest.mark.parametrize("seed", range(5))
+@pytest.mark.parametrize("dist", [True, False])
+def test_project_matches_opencv(seed, dist):
+    rng = np.random.default_rng(seed)
+    cam = random_camera(rng, dist)
+    X = rng.normal(size=(200, 3)) * 0.8
+    ref, _ = cv2.projectPoints(
+        X,
+        cv2.Rodrigues(cam.R.numpy())[0],
+        cam.t.numpy(),
+        cam.K.numpy(),
+        None if cam.dist is None else cam.dist.numpy(),
+    )
+    uv64 = cam.project(torch.from_numpy(X))
+    assert uv64.dtype == torch.float64
+    np.testing.assert_allclose(uv64.numpy(), ref[:, 0], atol=1e-8)
+    uv32 = cam.project(torch.from_numpy(X).float())
+    assert uv32.dtype == torch.float32
+    np.testing.assert_allclose(uv32.numpy(), ref[:, 0], atol=2e-3)
+
+
+def test_project_batched_shapes_and_gradient():
+    cam = random_camera(np.random.default_rng(1))
+    X = torch.randn(4, 5, 7, 3, dtype=torch.float64) * 0.5
+    uv = cam.project(X)
+    assert uv.shape == (4, 5, 7, 2)
+    np.testing.assert_allclose(uv[2, 3].numpy(), cam.project(X[2, 3]).numpy())
+    Xg = X[0, 0].clone().requires_grad_()
+    assert torch.autograd.gradcheck(lambda p: cam.project(p), (Xg,))
+    # The functional form with every parameter differentiable (calibration by gradient descent).
+    K = cam.K.clone().requires_grad_()
+    d = cam.dist.clone().requires_grad_()
+    assert torch.autograd.gradcheck(lambda K, d: project_points(X[0, 0], K, cam.R, cam.t, d), (K, d))
+
+
+def test_depth_in_front_and_center():
+    cam = look_at((0.0, -4.0, 1.5), (0.0, 0.0, 1.0), width=160, height=120)
+    np.testing.assert_allclose(cam.center.numpy(), [0.0, -4.0, 1.5], atol=1e-12)
+    pts = torch.tensor([[0.0, 0.0, 1.0], [0.0, -8.0, 1.0]], dtype=torch.float64)
+    assert cam.in_front(pts).tolist() == [True, False]
+    assert cam.depth(pts)[0] == pytest.approx(math.hypot(4.0, 0.5), rel=1e-12)
+    assert cam.in_image(pts).tolist() == [True, False]
+
+
+def test_look_at_conventions():
+    cam = look_at((3.0, 1.0, 2.0), (0.0, 0.0, 1.0), width=200, height=100, fov_deg=60)
+    uv = cam.project(torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, 1.5]], dtype=torch.float64))
+    # The target lands on the principal point; a point above it (world z up) lands higher (smaller v).
+    np.testing.assert_allclose(uv[0].numpy(), [99.5, 49.5], atol=1e-9)
+    assert uv[1, 1] < uv[0, 1]
+    assert abs(uv[1, 0] - uv[0, 0]) < 1e-9
+    R = cam.R.numpy()
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+    assert np.linalg.det(R) == pytest.approx(1.0)
+    assert cam.K[0, 0].item() == pytest.approx(100 / math.tan(math.radians(30)))
+
+
+def test_camera_ring():
+    rig = camera_ring(3, radius=4.0, height=1.5, target=(0.5, 0.0, 1.0), width=160, height_px=120)
+    assert list(rig) == ["cam0", "cam1", "cam2"]
+    centres = torch.stack([c.center for c in rig.values()])
+    d = (centres[:, :2] - torch.tensor([0.5, 0.0], dtype=torch.float64)).norm(dim=-1)
+    np.testing.assert_allclose(d.numpy(), 4.0, atol=1e-12)
+    np.testing.assert_allclose(centres[:, 2].numpy(), 1.5, atol=1e-12)
+    angles = torch.atan2(centres[:, 1], centres[:, 0] - 0.5)
+    gaps = torch.diff(torch.sort(angles).values)
+    np.testing.assert_allclose(gaps.numpy(), 2 * math.pi / 3, atol=1e-9)
+    for c in rig.values():
+        np.testing.assert_allclose(
+            c.project(torch.tensor([0.5, 0.0, 1.0], dtype=torch.float64)).numpy(), [79.5, 59.5]
+        )
+
+
+def test_pixel_rays_reproject_to_pixel_centres():
+    cam = random_camera(np.random.default_rng(3))
+    rays = cam.pixel_rays(48, 64, stride=1)  # a 64x48 grid over the 640x480 image
+    pts = cam.center + 3.0 * rays
+    uv = cam.project(pts)
+    jj, ii = np.meshgrid(np.arange(64), np.arange(48))
+    np.testing.assert_allclose(uv[..., 0].numpy(), (jj + 0.5) * 10 - 0.5, atol=1e-3)
+    np.testing.assert_allclose(uv[..., 1].numpy(), (ii + 0.5) * 10 - 0.5, atol=1e-3)
+    np.testing.assert_allclose(rays.norm(dim=-1).numpy(), 1.0, atol=1e-12)
+
+
+def test_resized_is_consistent():
+    cam = random_camera(np.random.default_rng(4), dist=False)
+    small = cam.resized(160, 120)
+    X = torch.randn(20, 3, dtype=torch.float64) * 0.5
+    np.testing.assert_allclose(
+        small.project(X).numpy(), ((cam.project(X) + 0.5) * 0.25 - 0.5).numpy(), atol=1e-9
+    )
+
+
+def test_cameras_yaml_roundtrip(tmp_path):
+    rng = np.random.default_rng(5)
+    cams = [random_camera(rng), random_camera(rng, dist=False)]
+    cams[0].name, cams[1].name = "left", "kinect"
+    path = tmp_path / "seq" / "cameras.yaml"
+    save_cameras(path, cams, depth_camera="kinect")
+    assert sorted(os.listdir(path.parent)) == ["cameras.yaml"]  # no temp file left behind
+    rig = load_cameras(path)
+    assert list(rig) == ["left", "kinect"] and rig.depth_camera == "kinect"
+    for a, b in zip(cams, rig.values(), strict=True):
+        for k in ("K", "R", "t"):
+            np.testing.assert_allclose(getattr(a, k).numpy(), getattr(b, k).numpy(), rtol=1e-15)
+        assert (a.width, a.height) == (b.width, b.height)
+        X = torch.randn(10, 3, dtype=torch.float64)
+        np.testing.assert_allclose(a.project(X).numpy(), b.project(X).numpy(), rtol=1e-12)
+    assert rig["kinect"].dist is None
+
+
+def _write_fs(path, data):
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    for k, v in data.items():
+        fs.write(k, v)
+    fs.release()
+
+
+@pytest.mark.parametrize("ext", ["yml", "xml"])
+def test_load_opencv_filestorage(tmp_path, ext):
+    rng = np.random.default_rng(6)
+    cam = random_camera(rng)
+    rvec = cv2.Rodrigues(cam.R.numpy())[0]
+    path = tmp_path / f"calib.{ext}"
+    _write_fs(
+        path,
+        {
+            "camera_matrix": cam.K.numpy(),
+            "distortion_coefficients": cam.dist.numpy().reshape(1, 5),
+            "image_width": 640,
+            "image_height": 480,
+            "rvec": rvec,
+            "tvec": cam.t.numpy().reshape(3, 1),
+        },
+    )
+    rig = load_cameras(path)
+    (loaded,) = rig.values()
+    assert loaded.name == "calib" and (loaded.width, loaded.height) == (640, 480)
+    X = torch.randn(30, 3, dtype=torch.float64) * 0.5
+    np.testing.assert_allclose(loaded.project(X).numpy(), cam.project(X).numpy(), atol=1e-9)
+
+
+def test_load_opencv_multi_camera_map(tmp_path):
+    path = tmp_path / "rig.yml"
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    for name in ("a", "b"):
+        fs.startWriteStruct(name, cv2.FileNode_MAP)
+        fs.write("cameraMatrix", np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]]))
+        fs.write("distCoeffs", np.zeros((1, 5)))
+        fs.write("R", np.eye(3))
+        fs.write("T", np.array([[0.0], [0.0], [3.0]]))
+        fs.write("image_size", np.array([[640.0, 480.0]]))
+        fs.endWriteStruct()
+    fs.release()
+    rig = load_cameras(path)
+    assert list(rig) == ["a", "b"]
+    assert rig["b"].width == 640 and rig["b"].height == 480
+    np.testing.assert_allclose(rig["a"].t.numpy(), [0, 0, 3.0])
+
+
+_I = "[[1,0,0],[0,1,0],[0,0,1]]"
+
+
+def _entry(K=_I, R=_I, t="[0,0,0]", width="4"):
+    lines = [f"    K: {K}" if K else "", f"    R: {R}", f"    t: {t}", f"    width: {width}", "    height: 3"]
+    return "cameras:\n  c0:\n" + "\n".join(x for x in lines if x) + "\n"
+
+
+@pytest.mark.parametrize(
+    ("text", "needle"),
+    [
+        (_entry(K=None), "'K'"),
+        (_entry(K="[[1,0,0],[0,1,0]]"), "'K'"),
+        (_entry(R="[[2,0,0],[0,1,0],[0,0,1]]"), "'R'"),
+        (_entry(t="[0,0]"), "'t'"),
+        (_entry(width="-4"), "'width'"),
+        ("cams: {}\n", "'cameras'"),
+        ("cameras: {c0: {K: 1}}\ndepth_camera: nope\n", "'K'"),
+    ],
+)
+def test_bad_camera_files_name_file_and_key(tmp_path, text, needle):
+    path = tmp_path / "cameras.yaml"
+    path.write_text(text)
+    with pytest.raises(CameraFileError) as e:
+        load_cameras(path)
+    assert str(path) in str(e.value) and needle in str(e.value)
+
+
+def test_bad_depth_camera_name(tmp_path):
+    cam = look_at((0, -3, 1), name="c0")
+    path = tmp_path / "cameras.yaml"
+    save_cameras(path, [cam])
+    text = path.read_text() + "depth_camera: nope\n"
+    path.write_text(text)
+    with pytest.raises(CameraFileError, match="depth_camera"):
+        load_cameras(path)
+    with pytest.raises(ValueError):
+        CameraRig([cam], depth_camera="nope")
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_project_cuda():
+    cam = random_camera(np.random.default_rng(7))
+    X = torch.randn(100, 3, dtype=torch.float64)
+    np.testing.assert_allclose(cam.project(X.cuda()).cpu().numpy(), cam.project(X).numpy(), atol=1e-9)

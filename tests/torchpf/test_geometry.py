@@ -1,0 +1,400 @@
+"""Capsule geometry against brute-force loops, dense surface sampling, sphere tracing and OpenCV drawing."""
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from torchpf.camera import look_at
+from torchpf.geometry import (
+    Capsules2D,
+    _uneven_capsule_sdf,
+    capsule_coverage,
+    capsule_distance,
+    capsule_masks,
+    capsule_truncated_cost,
+    outline_points,
+    project_capsules,
+    raycast_capsules,
+    sample_in_capsules,
+)
+
+
+def random_capsules(seed, n=3, C=5, dtype=torch.float64):
+    g = torch.Generator().manual_seed(seed)
+    a = torch.randn(n, C, 3, generator=g, dtype=dtype) * 0.4
+    b = a + torch.randn(n, C, 3, generator=g, dtype=dtype) * 0.3
+    r = torch.rand(C, generator=g, dtype=dtype) * 0.08 + 0.02
+    return a, b, r
+
+
+def brute_force_distance(P, a, b, r):
+    """Per point, per capsule: distance to the segment minus the radius, minimum over capsules."""
+    P, a, b, r = (x.detach().double().numpy() for x in (P, a, b, r))
+    out = np.empty((a.shape[0], P.shape[0]))
+    for n in range(a.shape[0]):
+        for k, p in enumerate(P):
+            best = math.inf
+            for c in range(a.shape[1]):
+                e = b[n, c] - a[n, c]
+                ee = e @ e
+                t = 0.0 if ee == 0 else min(1.0, max(0.0, (p - a[n, c]) @ e / ee))
+                best = min(best, np.linalg.norm(p - a[n, c] - t * e) - r[c])
+            out[n, k] = best
+    return out
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_capsule_distance_matches_brute_force(seed):
+    a, b, r = random_capsules(seed)
+    P = torch.randn(80, 3, generator=torch.Generator().manual_seed(100 + seed), dtype=torch.float64) * 0.6
+    ref = brute_force_distance(P, a, b, r)
+    d = capsule_distance(P, a, b, r)
+    assert d.shape == (3, 80)
+    np.testing.assert_allclose(d.numpy(), ref, atol=1e-10)
+    # float32: the quadratic-form expansion is centred, so the error stays far below a millimetre.
+    d32 = capsule_distance(P.float(), a.float(), b.float(), r.float())
+    assert d32.dtype == torch.float32
+    np.testing.assert_allclose(d32.double().numpy(), ref, atol=2e-5)
+    # Chunking does not change the result; per-pose point clouds go through the batched GEMM path.
+    np.testing.assert_allclose(capsule_distance(P, a, b, r, chunk_size=1).numpy(), ref, atol=1e-10)
+    Pb = P.expand(3, 80, 3)
+    np.testing.assert_allclose(capsule_distance(Pb, a, b, r).numpy(), ref, atol=1e-10)
+
+
+def test_capsule_distance_far_from_origin_and_degenerate():
+    # A zero-length capsule is a sphere; points 1000 m from the origin keep float32 accuracy after centring.
+    a = torch.tensor([[[1000.0, 0.0, 0.0], [1000.0, 1.0, 0.0]]])
+    b = torch.tensor([[[1000.0, 0.0, 0.0], [1000.0, 1.0, 1.0]]])
+    r = torch.tensor([0.1, 0.05])
+    P = torch.tensor([[1000.5, 0.0, 0.0], [1000.0, 1.2, 0.5], [1000.0, 1.0, 2.0]])
+    d = capsule_distance(P, a, b, r)
+    np.testing.assert_allclose(d[0].numpy(), [0.4, 0.15, 0.95], atol=1e-4)
+    # An outlier 1e6 m away does not spoil the precision of the other points.
+    P2 = torch.cat([P, torch.tensor([[1e6, 1e6, 1e6]])])
+    np.testing.assert_allclose(capsule_distance(P2, a, b, r)[0, :3].numpy(), [0.4, 0.15, 0.95], atol=1e-4)
+
+
+@given(
+    st.lists(st.floats(-1, 1), min_size=3, max_size=3),
+    st.floats(0.01, 0.3),
+    st.floats(0.0, 0.6),
+)
+@settings(max_examples=40, deadline=None)
+def test_capsule_distance_closed_form_cylinder(p, radius, length):
+    # Capsule along z from 0 to `length`: the closed form is the distance to the clamped axis point.
+    a = torch.zeros(1, 1, 3, dtype=torch.float64)
+    b = torch.tensor([[[0.0, 0.0, length]]], dtype=torch.float64)
+    P = torch.tensor([p], dtype=torch.float64)
+    z = min(max(p[2], 0.0), length)
+    expected = math.sqrt(p[0] ** 2 + p[1] ** 2 + (p[2] - z) ** 2) - radius
+    d = capsule_distance(P, a, b, torch.tensor([radius], dtype=torch.float64))
+    assert d.item() == pytest.approx(expected, abs=1e-9)
+
+
+def test_capsule_distance_broadcast_and_gradient():
+    a, b, r = random_capsules(4, n=2, C=3)
+    P = torch.randn(2, 1, 6, 3, dtype=torch.float64)  # (2, 1) broadcasts against (2,) only at dim -3
+    a4, b4 = a.expand(2, 2, 3, 3), b.expand(2, 2, 3, 3)
+    d = capsule_distance(P, a4, b4, r)
+    assert d.shape == (2, 2, 6)
+    np.testing.assert_allclose(
+        d[1, 0].numpy(), brute_force_distance(P[1, 0], a4[1, :1], b4[1, :1], r)[0], atol=1e-10
+    )
+    ag = a[:1].clone().requires_grad_()
+    assert torch.autograd.gradcheck(lambda x: capsule_distance(P[0, 0], x, b[:1], r), (ag,))
+
+
+def half_capsule_reference(P, a, b, r, view_point, n_phi=720, n_t=400):
+    """Distance to a densely sampled half-shell (spheres and cylinder, visible half only)."""
+    a, b, vp = a.numpy(), b.numpy(), view_point.numpy()
+    e = b - a
+    L = np.linalg.norm(e)
+    ex = e / L
+    w = vp - 0.5 * (a + b)
+    v = w - (w @ ex) * ex
+    v /= np.linalg.norm(v)
+    u = np.cross(ex, v)
+    phi = np.linspace(-np.pi / 2, np.pi / 2, n_phi)
+    t = np.linspace(0, L, n_t)
+    ring = np.cos(phi)[:, None] * v + np.sin(phi)[:, None] * u  # unit directions with d.v >= 0
+    cyl = a + t[:, None, None] * ex + r * ring[None]
+    # End caps: hemispheres restricted to the visible half (n.v >= 0), outward along the axis.
+    th = np.linspace(0, np.pi / 2, n_phi // 4)
+    caps = []
+    for centre, out in ((a, -ex), (b, ex)):
+        dirs = np.cos(th)[:, None, None] * ring[None] + np.sin(th)[:, None, None] * out
+        caps.append(centre + r * dirs.reshape(-1, 3))
+    surf = np.concatenate([cyl.reshape(-1, 3)] + caps)
+    return np.array([np.min(np.linalg.norm(surf - p, axis=1)) for p in P.numpy()])
+
+
+def test_half_capsule_against_dense_surface():
+    a = torch.tensor([0.1, -0.05, 0.9], dtype=torch.float64)
+    b = torch.tensor([0.2, 0.1, 1.3], dtype=torch.float64)
+    r = 0.06
+    vp = torch.tensor([0.3, -3.0, 1.4], dtype=torch.float64)
+    g = torch.Generator().manual_seed(0)
+    P = 0.5 * (a + b) + torch.randn(60, 3, generator=g, dtype=torch.float64) * 0.12
+    d = capsule_distance(
+        P, a[None, None], b[None, None], torch.tensor([r], dtype=torch.float64), view_point=vp
+    )[0]
+    ref = half_capsule_reference(P, a, b, r, vp)
+    # Half-shell distance is unsigned except in front of the cut plane (where it equals the full capsule's).
+    np.testing.assert_allclose(d.abs().numpy(), ref, atol=2e-3)
+    full = capsule_distance(P, a[None, None], b[None, None], torch.tensor([r], dtype=torch.float64))[0]
+    assert bool((d >= full - 1e-12).all())
+
+
+def test_raycast_matches_sphere_tracing():
+    a, b, r = random_capsules(5, n=1, C=4)
+    a, b = (
+        a[0] + torch.tensor([0, 0, 1.0], dtype=torch.float64),
+        b[0] + torch.tensor([0, 0, 1.0], dtype=torch.float64),
+    )
+    origin = torch.tensor([0.0, -3.0, 1.0], dtype=torch.float64)
+    g = torch.Generator().manual_seed(1)
+    target = (
+        torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+        + torch.randn(300, 3, generator=g, dtype=torch.float64) * 0.3
+    )
+    dirs = target - origin
+    dirs = dirs / dirs.norm(dim=-1, keepdim=True)
+    t_hit = raycast_capsules(origin, dirs, a, b, r)
+    hit = torch.isfinite(t_hit)
+    assert bool(hit.any()) and bool((~hit).any())
+    # Independent reference 1: densely sampled rays. Before the hit (or everywhere on a miss) every sample is
+    # outside all capsules; at the hit the signed distance is zero.
+    ts = torch.linspace(0, 6, 3001, dtype=torch.float64)
+    samples = origin + ts[None, :, None] * dirs[:, None]  # (300, S, 3)
+    sd = capsule_distance(samples.reshape(-1, 1, 3), a, b, r).reshape(300, -1)
+    before = ts[None] < torch.where(hit, t_hit, torch.full_like(t_hit, 1e9))[:, None] - 1e-9
+    assert bool((sd[before] > -1e-9).all())
+    at = capsule_distance((origin + t_hit[hit, None] * dirs[hit])[:, None], a, b, r)[:, 0]
+    np.testing.assert_allclose(at.numpy(), 0.0, atol=1e-9)
+    assert bool((sd[~hit].amin(-1) > -1e-9).all())
+    # Independent reference 2: sphere tracing, wherever it converges.
+    t = torch.zeros(300, dtype=torch.float64)
+    for _ in range(200):
+        d = capsule_distance((origin + t[:, None] * dirs)[:, None], a, b, r)[:, 0]
+        t = (t + d.clamp_min(0)).clamp_max(10.0)
+    conv = capsule_distance((origin + t[:, None] * dirs)[:, None], a, b, r)[:, 0] < 1e-8
+    assert bool(conv.any())
+    assert bool(hit[conv].all())
+    np.testing.assert_allclose(t_hit[conv].numpy(), t[conv].numpy(), atol=1e-6)
+
+
+def test_project_capsules_radius_on_axis():
+    cam = look_at((0.0, -4.0, 1.0), (0.0, 0.0, 1.0), width=160, height=120, fov_deg=50)
+    a = torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64)
+    b = torch.tensor([[0.0, 0.0, 1.5]], dtype=torch.float64)
+    caps = project_capsules(cam, a, b, torch.tensor([0.1], dtype=torch.float64))
+    f = cam.K[0, 0].item()
+    assert caps.ra.item() == pytest.approx(f * 0.1 / 4.0)
+    np.testing.assert_allclose(caps.pa.numpy(), [[79.5, 59.5]])
+    assert caps.pb[0, 1] < caps.pa[0, 1] and bool(caps.valid.all())
+    behind = project_capsules(
+        cam, a - torch.tensor([0.0, 5.0, 0.0], dtype=torch.float64), b, caps.ra.new_tensor([0.1])
+    )
+    assert not bool(behind.valid.any())
+
+
+def cv2_capsule_mask(pa, pb, ra, rb, H, W, shift=8):
+    """Reference raster: both discs plus the convex hull of densely sampled disc boundaries, sub-pixel."""
+    m = np.zeros((H, W), np.uint8)
+    s = 1 << shift
+    for (x, y), rad in ((pa, ra), (pb, rb)):
+        cv2.circle(m, (round(x * s), round(y * s)), round(rad * s), 255, -1, cv2.LINE_8, shift)
+    phi = np.linspace(0, 2 * np.pi, 720, endpoint=False)
+    pts = np.concatenate(
+        [np.stack([c[0] + rad * np.cos(phi), c[1] + rad * np.sin(phi)], 1) for c, rad in ((pa, ra), (pb, rb))]
+    )
+    hull = cv2.convexHull(np.round(pts * s).astype(np.int32))
+    cv2.fillConvexPoly(m, hull, 255, cv2.LINE_8, shift)
+    return m > 0
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_capsule_masks_match_opencv_drawing(seed):
+    rng = np.random.default_rng(seed)
+    H, W = 60, 80
+    pa, pb = rng.uniform([10, 10], [70, 50]), rng.uniform([10, 10], [70, 50])
+    ra, rb = rng.uniform(2, 8), rng.uniform(2, 8)
+    caps = Capsules2D(
+        torch.from_numpy(pa)[None, None],
+        torch.from_numpy(pb)[None, None],
+        torch.tensor([[ra]]),
+        torch.tensor([[rb]]),
+        torch.tensor([[True]]),
+    )
+    mask = capsule_masks(caps, H, W)[0].numpy()
+    ref = cv2_capsule_mask(pa, pb, ra, rb, H, W)
+    v, u = np.mgrid[0:H, 0:W]
+    sdf = _uneven_capsule_sdf(
+        torch.from_numpy(np.stack([u, v], -1)).double(),
+        torch.tensor(pa),
+        torch.tensor(pb),
+        torch.tensor(ra),
+        torch.tensor(rb),
+    ).numpy()
+    differ = mask != ref
+    # OpenCV fills a little beyond the exact edge (up to ~0.7 px); every pixel centre further than that from
+    # the boundary must agree, and the disagreement band is thin.
+    assert np.abs(sdf[differ]).max(initial=0) < 0.75
+    assert differ.sum() < 0.25 * ref.sum() and mask.sum() > 0
+
+
+def test_capsule_masks_union_soft_and_invalid():
+    caps = Capsules2D(
+        torch.tensor([[[10.0, 10.0], [30.0, 20.0]]]),
+        torch.tensor([[[20.0, 10.0], [30.0, 25.0]]]),
+        torch.tensor([[3.0, 2.0]]),
+        torch.tensor([[3.0, 2.0]]),
+        torch.tensor([[True, False]]),
+    )
+    hard = capsule_masks(caps, 32, 40)
+    assert hard.dtype == torch.bool and hard.shape == (1, 32, 40)
+    assert bool(hard[0, 10, 15]) and not bool(hard[0, 22, 30])  # the invalid capsule is not drawn
+    soft = capsule_masks(caps, 32, 40, soft=0.5)
+    assert soft.dtype == torch.float32 and float(soft[0, 10, 15]) > 0.99 and float(soft[0, 0, 0]) < 1e-6
+
+
+def _caps(seed, n=4, C=3):
+    g = torch.Generator().manual_seed(seed)
+    pa = torch.rand(n, C, 2, generator=g, dtype=torch.float64) * 60 + 10
+    pb = pa + torch.randn(n, C, 2, generator=g, dtype=torch.float64) * 15
+    ra = torch.rand(n, C, generator=g, dtype=torch.float64) * 5 + 2
+    rb = torch.rand(n, C, generator=g, dtype=torch.float64) * 5 + 2
+    return Capsules2D(pa, pb, ra, rb, torch.ones(n, C, dtype=torch.bool))
+
+
+def round_cone_sdf(p, pa, pb, ra, rb):
+    """Independent per-point formula of the sampled region {|p - q(t)| <= r(t)}."""
+    e = pb - pa
+    t = np.clip((p - pa) @ e / (e @ e), 0, 1)
+    return np.linalg.norm(p - pa - t * e) - (ra + t * (rb - ra))
+
+
+@pytest.mark.parametrize("generator", [None, 7])
+def test_sample_in_capsules_inside_and_area(generator):
+    caps = _caps(0)
+    gen = None if generator is None else torch.Generator().manual_seed(generator)
+    pts, w = sample_in_capsules(caps, 24, 6, generator=gen)
+    assert pts.shape == (4, 3 * 36, 2) and w.shape == (4, 3 * 36)
+    for n in range(4):
+        for c in range(3):
+            sl = slice(c * 36, (c + 1) * 36)
+            args = [x[n, c].numpy() for x in (caps.pa, caps.pb, caps.ra, caps.rb)]
+            sd = np.array([round_cone_sdf(p, *args) for p in pts[n, sl].numpy()])
+            assert sd.max() < 1e-9
+            pa, pb, ra, rb = args
+            area = np.linalg.norm(pb - pa) * (ra + rb) + 0.5 * np.pi * (ra**2 + rb**2)
+            assert w[n, sl].sum().item() == pytest.approx(area, rel=1e-9)
+    if gen is not None:
+        again, _ = sample_in_capsules(caps, 24, 6, generator=torch.Generator().manual_seed(generator))
+        assert torch.equal(pts, again)
+
+
+def test_sample_in_capsules_is_area_uniform():
+    # The weighted share of points left of a vertical line equals the share of area (pixel count) there.
+    caps = Capsules2D(
+        torch.tensor([[[20.0, 30.0]]]),
+        torch.tensor([[[90.0, 40.0]]]),
+        torch.tensor([[4.0]]),
+        torch.tensor([[12.0]]),
+        torch.tensor([[True]]),
+    )
+    pts, w = sample_in_capsules(caps, 400, 100)
+    mask = capsule_masks(caps, 80, 120)[0]
+    for x in (30.0, 55.0, 80.0):
+        share = (w * (pts[..., 0] < x)).sum() / w.sum()
+        pix = mask[:, : int(x + 0.5)].sum() / mask.sum()
+        assert share.item() == pytest.approx(pix.item(), abs=0.02)
+
+
+def test_capsule_coverage_matches_masks():
+    caps = _caps(1, n=2)
+    H, W = 90, 100
+    v, u = torch.meshgrid(
+        torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij"
+    )
+    grid = torch.stack([u, v], -1).reshape(-1, 2)
+    cov = capsule_coverage(grid, caps).reshape(2, H, W)
+    mask = capsule_masks(caps, H, W).double()
+    differ = cov != mask
+    assert differ.sum() <= 0.01 * mask.sum()
+    # Counting mode: pixels covered by two capsules count twice; per-pose points give the same values.
+    count = capsule_coverage(grid, caps, reduce="sum")
+    assert torch.equal(count >= 1, cov.reshape(2, -1) > 0)
+    per_pose = capsule_coverage(grid.expand(2, -1, 2), caps)
+    assert torch.equal(per_pose, cov.reshape(2, -1))
+    soft = capsule_coverage(grid, caps, softness=1.0).reshape(2, H, W)
+    assert float((soft - cov).abs().max()) <= 1.0 and bool(((soft > 0) & (soft < 1)).any())
+
+
+def test_capsule_coverage_exclude_own_and_gradient():
+    caps = _caps(2, n=1, C=2)
+    pts, _ = sample_in_capsules(caps, 8, 2)
+    own = capsule_coverage(pts, caps, reduce="sum")
+    others = capsule_coverage(pts, caps, reduce="sum", exclude_own=12)
+    assert bool((own - others >= 1 - 1e-12).all())
+    ra = caps.ra.clone().requires_grad_()
+    g = (
+        torch.tensor([[40.0, 40.0]], dtype=torch.float64).expand(1, 50, 2)
+        + torch.randn(1, 50, 2, dtype=torch.float64) * 10
+    )
+    cov = capsule_coverage(g, Capsules2D(caps.pa, caps.pb, ra, caps.rb, caps.valid), softness=2.0).sum()
+    cov.backward()
+    assert torch.isfinite(ra.grad).all()
+
+
+def test_outline_points_lie_on_the_boundary():
+    caps = _caps(3, n=2, C=2)
+    pts, ok = outline_points(caps, 5, 3)
+    assert pts.shape == (2, 2 * 16, 2) and bool(ok.all())
+    for n in range(2):
+        for c in range(2):
+            args = [x[n, c].numpy() for x in (caps.pa, caps.pb, caps.ra, caps.rb)]
+            sd = np.array([round_cone_sdf(p, *args) for p in pts[n, c * 16 : (c + 1) * 16].numpy()])
+            np.testing.assert_allclose(sd, 0.0, atol=1e-9)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_capsule_distance_cuda():
+    a, b, r = random_capsules(0)
+    P = torch.randn(100, 3, dtype=torch.float64)
+    np.testing.assert_allclose(
+        capsule_distance(P.cuda(), a.cuda(), b.cuda(), r.cuda()).cpu().numpy(),
+        capsule_distance(P, a, b, r).numpy(),
+        atol=1e-9,
+    )
+
+
+def _cost_case():
+    a, b, r = random_capsules(6, n=7, C=5, dtype=torch.float32)
+    P = torch.randn(50, 3, generator=torch.Generator().manual_seed(6)) * 0.5
+    return P, a, b, r
+
+
+@pytest.mark.parametrize("view", [None, (0.0, -3.0, 0.5)])
+def test_truncated_cost_eager(view):
+    P, a, b, r = _cost_case()
+    vp = None if view is None else torch.tensor(view)
+    ref = capsule_distance(P, a, b, r, view_point=vp).square().clamp_max(0.01).sum(-1)
+    torch.testing.assert_close(capsule_truncated_cost(P, a, b, r, tau=0.01, view_point=vp), ref)
+
+
+@pytest.mark.parametrize(
+    "view",
+    [None, pytest.param((0.0, -3.0, 0.5), marks=pytest.mark.slow)],  # each compile takes ~15 s
+)
+def test_truncated_cost_compiled(view):
+    P, a, b, r = _cost_case()
+    vp = None if view is None else torch.tensor(view)
+    ref = capsule_distance(P, a, b, r, view_point=vp).square().clamp_max(0.01).sum(-1)
+    got = capsule_truncated_cost(P, a, b, r, tau=0.01, view_point=vp, compile=True, chunk_size=3)
+    torch.testing.assert_close(got, ref, rtol=1e-5, atol=1e-5)

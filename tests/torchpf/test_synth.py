@@ -1,0 +1,202 @@
+"""Synthetic sequences: rendered masks against the projected model, depth points on the visible skin, noise
+options, truth CSV and the sequence directory round trip."""
+
+import os
+
+import numpy as np
+import pytest
+import torch
+
+from torchpf import assets
+from torchpf.camera import camera_ring, look_at
+from torchpf.geometry import capsule_distance, capsule_masks, project_capsules
+from torchpf.observations import Frame, depth_to_points
+from torchpf.skeleton import Skeleton
+from torchpf.synth import (
+    SynthOptions,
+    load_truth_csv,
+    read_sequence,
+    render_depth,
+    render_silhouette,
+    save_truth_csv,
+    synthesize,
+    write_sequence,
+)
+
+W, H = 160, 120
+
+
+@pytest.fixture(scope="module")
+def skel():
+    return Skeleton.from_urdf(assets.path("human.urdf"))
+
+
+@pytest.fixture(scope="module")
+def motion(skel):
+    names = skel.dof_names
+    T = 4
+    m = torch.zeros(T, len(names), dtype=torch.float64)
+    m[:, names.index("Hips_Yposition")] = 1.0
+    m[:, names.index("Hips_Xposition")] = torch.linspace(0, 0.3, T, dtype=torch.float64)
+    m[:, names.index("LeftArm_Yrotation")] = torch.linspace(0.2, 0.8, T, dtype=torch.float64)
+    m[:, names.index("RightUpLeg_Xrotation")] = torch.linspace(0.0, -0.4, T, dtype=torch.float64)
+    return m
+
+
+@pytest.fixture(scope="module")
+def rig():
+    return camera_ring(3, radius=4.0, height=1.5, target=(0, 0, 0.8), width=W, height_px=H)
+
+
+@pytest.fixture(scope="module")
+def depth_cam():
+    return look_at((0.6, -3.0, 1.4), (0, 0, 0.8), width=W, height=H, name="depth")
+
+
+@pytest.fixture(scope="module")
+def clean(skel, motion, rig, depth_cam):
+    return synthesize(skel, motion, rig, depth_camera=depth_cam, seed=0)
+
+
+def test_masks_match_projected_capsules(skel, motion, rig, clean):
+    ends, radii = skel.capsules(motion)
+    for t in range(len(motion)):
+        for v, cam in enumerate(rig.values()):
+            mask = clean.masks[t][v] > 0
+            model = capsule_masks(project_capsules(cam, ends[t, :, 0], ends[t, :, 1], radii), H, W).numpy()
+            # Ray casting is exact perspective; the projected-disc model differs by a few boundary pixels.
+            assert (mask ^ model).sum() <= 0.02 * mask.sum()
+            assert mask.sum() > 300
+
+
+def test_depth_points_are_visible_skin(skel, motion, depth_cam, clean):
+    ends, radii = skel.capsules(motion)
+    for t in range(len(motion)):
+        pts = torch.from_numpy(clean.points[t]).double()
+        a, b = ends[t, :, 0], ends[t, :, 1]
+        assert len(pts) > 300
+        d = capsule_distance(pts, a, b, radii)
+        np.testing.assert_allclose(d.numpy(), 0.0, atol=1e-5)
+        # Self-occlusion: the segment from the sensor to each point stays outside the body until the point.
+        c = depth_cam.center
+        s = torch.linspace(0.0, 0.98, 50, dtype=torch.float64)
+        seg = c + s[:, None, None] * (pts - c)  # (S, K, 3)
+        inside = capsule_distance(seg.reshape(-1, 3), a, b, radii).reshape(50, -1)
+        far = (1 - s)[:, None] * (pts - c).norm(dim=-1) > 2e-3
+        assert bool((inside[far] > -1e-6).all())
+
+
+def test_render_depth_agrees_with_points(skel, motion, depth_cam, clean):
+    depth = render_depth(skel, motion[0], depth_cam).numpy()
+    pts = depth_to_points(depth, depth_cam, min_depth=0.1)
+    assert len(pts) == len(clean.points[0])
+    order = lambda p: p[np.lexsort(p.T)]  # noqa: E731
+    np.testing.assert_allclose(order(pts.numpy()), order(clean.points[0]), atol=1e-4)
+    sil = render_silhouette(skel, motion[0], depth_cam)
+    assert int(sil.sum()) == len(pts)
+
+
+def test_keypoints_project_joints(skel, motion, rig, clean):
+    assert clean.keypoints.shape == (len(motion), 3, len(skel.joint_names), 2)
+    joints = skel.fk(motion[2])
+    for v, cam in enumerate(rig.values()):
+        np.testing.assert_allclose(clean.keypoints[2, v], cam.project(joints).numpy(), atol=1e-4)
+
+
+def test_noise_options(skel, motion, rig, depth_cam, clean):
+    opts = SynthOptions(
+        speckle=0.02,
+        morph_px=1,
+        missing_frames=0.3,
+        occluders=1,
+        occluder_size=0.3,
+        depth_noise=0.01,
+        outliers=0.1,
+        n_points=500,
+        keypoint_noise=1.0,
+        keypoint_dropout=0.2,
+    )
+    noisy = synthesize(skel, motion, rig, depth_camera=depth_cam, options=opts, seed=1)
+    again = synthesize(skel, motion, rig, depth_camera=depth_cam, options=opts, seed=1)
+    missing = [m is None for row in noisy.masks for m in row]
+    assert any(missing) and not all(missing)
+    for row_n, row_a in zip(noisy.masks, again.masks, strict=True):
+        for m, n in zip(row_n, row_a, strict=True):
+            assert (m is None and n is None) or np.array_equal(m, n)
+    flips = []
+    for t, row in enumerate(noisy.masks):
+        for v, m in enumerate(row):
+            if m is None:
+                assert np.isnan(noisy.keypoints[t, v]).all()
+                continue
+            flips.append(((m > 0) != (clean.masks[t][v] > 0)).mean())
+    assert 0.015 < np.median(flips) < 0.2
+    assert np.isnan(noisy.keypoints).any() and np.isfinite(noisy.keypoints).any()
+    for pts in noisy.points:
+        assert len(pts) <= 500
+    ends, radii = skel.capsules(motion[0])
+    d = capsule_distance(torch.from_numpy(noisy.points[0]).double(), ends[:, 0], ends[:, 1], radii).abs()
+    assert 0.005 < float(d.median()) < 0.03  # 1 cm depth noise
+    assert float((d > 0.1).float().mean()) > 0.03  # outliers
+    frame = noisy.frame(0)
+    assert isinstance(frame, Frame) and frame.points.points.shape[1] == 3
+
+
+def test_occluder_hides_body_in_masks(skel, motion, rig):
+    seq = synthesize(skel, motion[:1], rig, options=SynthOptions(occluders=1, occluder_size=0.5), seed=3)
+    clean = synthesize(skel, motion[:1], rig, seed=3)
+    lost = sum(((c > 0) & ~(m > 0)).sum() for c, m in zip(clean.masks[0], seq.masks[0], strict=True))
+    gained = sum((~(c > 0) & (m > 0)).sum() for c, m in zip(clean.masks[0], seq.masks[0], strict=True))
+    assert lost > 0 and gained == 0
+
+
+def test_truth_csv_roundtrip(tmp_path):
+    angles = torch.randn(5, 3, dtype=torch.float64)
+    save_truth_csv(tmp_path / "t.csv", angles, ["a", "b", "c"], times=np.arange(5) / 30)
+    text = (tmp_path / "t.csv").read_text().splitlines()
+    assert text[0] == "time,a,b,c" and len(text) == 6
+    got, names, times = load_truth_csv(tmp_path / "t.csv")
+    assert names == ["a", "b", "c"]
+    torch.testing.assert_close(got, angles, rtol=0, atol=0)
+    np.testing.assert_allclose(times, np.arange(5) / 30)
+    save_truth_csv(tmp_path / "u.csv", angles, ["a", "b", "c"])
+    got, names, times = load_truth_csv(tmp_path / "u.csv")
+    assert times is None and torch.equal(got, angles)
+    (tmp_path / "bad.csv").write_text("time,a\n0.0,1.0,2.0\n")
+    with pytest.raises(ValueError, match="line 2"):
+        load_truth_csv(tmp_path / "bad.csv")
+
+
+def test_sequence_directory_roundtrip(tmp_path, skel, motion, rig, depth_cam):
+    opts = SynthOptions(missing_frames=0.3, keypoint_dropout=0.2)
+    seq = synthesize(skel, motion, rig, depth_camera=depth_cam, options=opts, seed=4)
+    root = tmp_path / "seq"
+    write_sequence(root, seq)
+    assert sorted(os.listdir(root)) == ["cameras.yaml", "keypoints.npz", "masks", "points", "truth.csv"]
+    assert sorted(os.listdir(root / "masks")) == ["cam0", "cam1", "cam2"]
+    n_missing = sum(m is None for row in seq.masks for m in row)
+    n_files = sum(len(os.listdir(root / "masks" / c)) for c in ("cam0", "cam1", "cam2"))
+    assert n_files == 3 * len(motion) - n_missing and os.listdir(root / "masks" / "cam0")[0].endswith(".png")
+    back = read_sequence(root)
+    assert len(back) == len(motion) and list(back.cameras) == ["cam0", "cam1", "cam2"]
+    assert back.depth_camera is not None and back.depth_camera.name == "depth"
+    for row_a, row_b in zip(seq.masks, back.masks, strict=True):
+        for m, n in zip(row_a, row_b, strict=True):
+            assert (m is None and n is None) or np.array_equal(m, n)
+    for p, q in zip(seq.points, back.points, strict=True):
+        np.testing.assert_array_equal(p, q)
+    torch.testing.assert_close(back.truth, seq.truth, rtol=0, atol=0)
+    assert back.dof_names == skel.dof_names
+    np.testing.assert_allclose(back.times, seq.times)
+    np.testing.assert_array_equal(back.keypoints, seq.keypoints.astype(np.float32))
+    assert back.keypoint_joints == skel.joint_names
+    fr = back.frame(1)
+    assert fr.silhouettes.masks.shape == (3, H, W)
+    assert fr.silhouettes.valid.tolist() == [m is not None for m in seq.masks[1]]
+    with pytest.raises(FileNotFoundError, match="cameras.yaml"):
+        read_sequence(tmp_path)
+
+
+def test_bad_motion_shape(skel, rig):
+    with pytest.raises(ValueError, match="motion"):
+        synthesize(skel, torch.zeros(3, 5), rig)

@@ -1,0 +1,557 @@
+"""Pinhole cameras with OpenCV conventions, batched and differentiable projection, ``cameras.yaml`` I/O.
+
+A :class:`Camera` maps world points to pixels exactly as ``cv2.projectPoints`` does::
+
+    x_cam = R @ x_world + t                        # world -> camera (metres), camera looks along +z
+    x, y  = x_cam[0] / x_cam[2], x_cam[1] / x_cam[2]
+    r2    = x**2 + y**2
+    x'    = x (1 + k1 r2 + k2 r2**2 + k3 r2**3) + 2 p1 x y + p2 (r2 + 2 x**2)
+    y'    = y (1 + k1 r2 + k2 r2**2 + k3 r2**3) + p1 (r2 + 2 y**2) + 2 p2 x y
+    u, v  = K @ (x', y', 1)                        # pixels; (0, 0) is the centre of the top-left pixel
+
+Image x grows to the right, y grows down; with a z-up world a camera's ``R`` has its third row (the optical
+axis) pointing at the scene and its second row pointing down in the world. :func:`look_at` builds such
+cameras, and :func:`camera_ring` places ``n`` of them on a circle around a subject (the 3-camera triangle
+of Fontmarty et al. is ``camera_ring(3, ...)``).
+
+Files: :func:`load_cameras` reads the ``cameras.yaml`` of a sequence directory (DESIGN.md) and also
+OpenCV ``cv2.FileStorage`` YAML/XML files written by calibration pipelines; :func:`save_cameras` writes
+``cameras.yaml`` atomically. The format::
+
+    cameras:
+      cam0:
+        K: [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]
+        dist: [k1, k2, p1, p2, k3]        # optional, 0 to 5 numbers (missing ones are 0)
+        R: [[...], [...], [...]]          # world -> camera rotation
+        t: [tx, ty, tz]                   # world -> camera translation (m)
+        width: 640
+        height: 480
+    depth_camera: cam0                    # optional: the camera that produced points/<frame>.npy
+
+Example::
+
+    from torchpf.camera import camera_ring
+    cams = camera_ring(3, radius=4.0, height=1.5, target=(0, 0, 1), width=160, height_px=120)
+    uv = cams[0].project(torch.randn(1000, 17, 3))      # (1000, 17, 2) pixels
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import tempfile
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+__all__ = [
+    "Camera",
+    "CameraFileError",
+    "CameraRig",
+    "camera_ring",
+    "load_cameras",
+    "load_opencv_camera",
+    "look_at",
+    "project_points",
+    "save_cameras",
+]
+
+
+class CameraFileError(ValueError):
+    """A camera file is missing a key or holds a value of the wrong shape; the message names both."""
+
+
+def _atomic_write(path: str | os.PathLike, data: bytes | str) -> None:
+    """Write through a temporary file in the same folder and ``os.replace`` (no torn files on a crash)."""
+    path = os.fspath(path)
+    folder = os.path.dirname(os.path.abspath(path))
+    os.makedirs(folder, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=folder, prefix=".tmp-", suffix=os.path.basename(path))
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data.encode("utf-8") if isinstance(data, str) else data)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def project_points(
+    points: torch.Tensor,
+    K: torch.Tensor,
+    R: torch.Tensor,
+    t: torch.Tensor,
+    dist: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """Functional OpenCV projection (the formula in the module docstring), batched and differentiable.
+
+    Args:
+        points: (..., 3) world points (m).
+        K: (3, 3) intrinsics; R: (3, 3) rotation; t: (3,) translation (world -> camera).
+        dist: (5,) distortion ``k1 k2 p1 p2 k3`` or None.
+
+    Returns:
+        (..., 2) pixel coordinates (u right, v down). Points at or behind the camera plane give
+        meaningless (but finite where z != 0) values; check :meth:`Camera.depth`.
+    """
+    xc = points @ R.transpose(-1, -2) + t
+    z = xc[..., 2]
+    # Keep the division finite for points on the camera plane; they are flagged by depth <= 0 anyway.
+    z = torch.where(z.abs() < 1e-12, torch.full_like(z, 1e-12), z)
+    x, y = xc[..., 0] / z, xc[..., 1] / z
+    if dist is not None:
+        k1, k2, p1, p2, k3 = dist.unbind(-1)
+        r2 = x * x + y * y
+        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        xy = x * y
+        x, y = (
+            x * radial + 2 * p1 * xy + p2 * (r2 + 2 * x * x),
+            y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * xy,
+        )
+    u = K[..., 0, 0] * x + K[..., 0, 1] * y + K[..., 0, 2]
+    v = K[..., 1, 1] * y + K[..., 1, 2]
+    return torch.stack([u, v], -1)
+
+
+def _as_tensor(x, shape: tuple[int, ...], what: str) -> torch.Tensor:
+    t = torch.as_tensor(np.asarray(x, dtype=np.float64) if not isinstance(x, torch.Tensor) else x)
+    if not t.is_floating_point():
+        t = t.to(torch.float64)
+    if tuple(t.shape) != shape:
+        try:
+            t = t.reshape(shape)
+        except RuntimeError:
+            raise ValueError(f"{what} must have shape {shape}, got {tuple(t.shape)}") from None
+    return t
+
+
+@dataclass(eq=False)
+class Camera:
+    """A calibrated pinhole camera, OpenCV conventions (module docstring).
+
+    Args:
+        K: (3, 3) intrinsics (pixels). R: (3, 3) world->camera rotation. t: (3,) world->camera translation
+            (m). dist: up to 5 distortion coefficients ``k1 k2 p1 p2 k3`` (missing ones are 0) or None.
+        width, height: image size in pixels. name: label used in ``cameras.yaml`` and sequence folders.
+
+    Tensors are stored as given (float64 from lists); :meth:`project` casts them to the points' dtype and
+    device, so the same camera serves float32 particles on CPU or GPU. A camera is a small value object,
+    not an ``nn.Module``: likelihoods copy its tensors into their own buffers.
+    """
+
+    K: torch.Tensor
+    R: torch.Tensor
+    t: torch.Tensor
+    dist: torch.Tensor | None = None
+    width: int = 0
+    height: int = 0
+    name: str = "cam"
+
+    def __post_init__(self):
+        self.K = _as_tensor(self.K, (3, 3), "K")
+        self.R = _as_tensor(self.R, (3, 3), "R")
+        self.t = _as_tensor(self.t, (3,), "t")
+        if self.dist is not None:
+            d = torch.as_tensor(np.asarray(self.dist, dtype=np.float64).reshape(-1))
+            if d.numel() > 5:
+                # OpenCV's rational/thin-prism models (8-14 coefficients) are not implemented.
+                if bool((d[5:] != 0).any()):
+                    raise ValueError(
+                        f"only 5 distortion coefficients (k1 k2 p1 p2 k3) are supported, got {d}"
+                    )
+                d = d[:5]
+            d = torch.cat([d, d.new_zeros(5 - d.numel())])
+            self.dist = None if bool((d == 0).all()) else d.to(self.K.dtype)
+        self.width, self.height = int(self.width), int(self.height)
+
+    # ------------------------------------------------------------------ geometry
+    def _params(self, like: torch.Tensor):
+        kw = {"dtype": like.dtype, "device": like.device}
+        dist = None if self.dist is None else self.dist.to(**kw)
+        return self.K.to(**kw), self.R.to(**kw), self.t.to(**kw), dist
+
+    def project(self, points: torch.Tensor) -> torch.Tensor:
+        """(..., 3) world points (m) -> (..., 2) pixels, differentiable; agrees with ``cv2.projectPoints``."""
+        return project_points(points, *self._params(points))
+
+    def to_camera(self, points: torch.Tensor) -> torch.Tensor:
+        """(..., 3) world points -> (..., 3) camera-frame points ``R x + t`` (m)."""
+        _, R, t, _ = self._params(points)
+        return points @ R.transpose(-1, -2) + t
+
+    def depth(self, points: torch.Tensor) -> torch.Tensor:
+        """(..., 3) world points -> (...,) depth along the optical axis (m); > 0 means in front."""
+        return self.to_camera(points)[..., 2]
+
+    def in_front(self, points: torch.Tensor, near: float = 1e-3) -> torch.Tensor:
+        """(..., 3) -> (...,) bool: depth greater than ``near`` (m)."""
+        return self.depth(points) > near
+
+    def in_image(self, points: torch.Tensor, near: float = 1e-3) -> torch.Tensor:
+        """(..., 3) -> (...,) bool: in front of the camera and projecting inside the image rectangle."""
+        uv = self.project(points)
+        inside = (uv[..., 0] >= -0.5) & (uv[..., 0] < self.width - 0.5)
+        inside &= (uv[..., 1] >= -0.5) & (uv[..., 1] < self.height - 0.5)
+        return inside & self.in_front(points, near)
+
+    @property
+    def center(self) -> torch.Tensor:
+        """(3,) camera centre in world coordinates, ``-R^T t`` (m)."""
+        return -(self.R.transpose(0, 1) @ self.t)
+
+    @property
+    def focal(self) -> float:
+        """Mean focal length (pixels), used to turn a metric radius at depth z into pixels: f r / z."""
+        return 0.5 * float(self.K[0, 0] + self.K[1, 1])
+
+    def pixel_rays(
+        self, height: int | None = None, width: int | None = None, stride: int = 1
+    ) -> torch.Tensor:
+        """Unit ray directions in the *world* frame through pixel centres, distortion undone.
+
+        Args:
+            height, width: grid size (defaults: the image size; a smaller grid is a resampled image, so
+                pixel (i, j) of an ``h x w`` grid covers the camera pixel ``((j + .5) W / w - .5, ...)``).
+            stride: keep every ``stride``-th row and column of that grid.
+
+        Returns:
+            (h', w', 3) float64 unit directions; rays start at :attr:`center`.
+        """
+        import cv2
+
+        h, w = height or self.height, width or self.width
+        js, is_ = np.meshgrid(np.arange(0, w, stride), np.arange(0, h, stride))
+        u = (js + 0.5) * self.width / w - 0.5
+        v = (is_ + 0.5) * self.height / h - 0.5
+        pix = np.stack([u, v], -1).reshape(-1, 1, 2).astype(np.float64)
+        dist = None if self.dist is None else self.dist.numpy()
+        xy = cv2.undistortPoints(pix, self.K.numpy(), dist).reshape(is_.shape + (2,))
+        d_cam = np.concatenate([xy, np.ones(is_.shape + (1,))], -1)
+        d_world = d_cam @ self.R.numpy()  # R^T d for row vectors
+        d_world /= np.linalg.norm(d_world, axis=-1, keepdims=True)
+        return torch.from_numpy(d_world)
+
+    def resized(self, width: int, height: int) -> Camera:
+        """The same camera seen at another resolution (intrinsics scaled; pixel centres kept consistent)."""
+        sx, sy = width / self.width, height / self.height
+        K = self.K.clone()
+        K[0, 0] *= sx
+        K[0, 1] *= sx
+        K[1, 1] *= sy
+        K[0, 2] = (K[0, 2] + 0.5) * sx - 0.5
+        K[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
+        return Camera(
+            K, self.R.clone(), self.t.clone(), self.dist, width=width, height=height, name=self.name
+        )
+
+    # ------------------------------------------------------------------ (de)serialisation
+    def to_dict(self) -> dict:
+        """Plain-Python mapping in the ``cameras.yaml`` layout (lists of floats)."""
+        d = {
+            "K": self.K.tolist(),
+            "dist": [0.0] * 5 if self.dist is None else self.dist.tolist(),
+            "R": self.R.tolist(),
+            "t": self.t.tolist(),
+            "width": self.width,
+            "height": self.height,
+        }
+        return d
+
+    @classmethod
+    def from_dict(cls, d: Mapping, name: str = "cam", source: str = "<dict>") -> Camera:
+        """Inverse of :meth:`to_dict`; errors name ``source``, the camera and the key."""
+        where = f"{source}: camera {name!r}"
+        if not isinstance(d, Mapping):
+            raise CameraFileError(f"{where}: expected a mapping of K, dist, R, t, width, height")
+        unknown = set(d) - {"K", "dist", "R", "t", "width", "height"}
+        if unknown:
+            raise CameraFileError(f"{where}: unknown key(s) {sorted(unknown)}")
+        values = {}
+        for key, shape in (("K", (3, 3)), ("R", (3, 3)), ("t", (3,))):
+            if key not in d:
+                raise CameraFileError(f"{where}: missing key {key!r}")
+            values[key] = _checked_array(d[key], shape, f"{where}: key {key!r}")
+        dist = d.get("dist")
+        if dist is not None:
+            arr = _checked_array(dist, None, f"{where}: key 'dist'").reshape(-1)
+            if arr.size > 5:
+                raise CameraFileError(
+                    f"{where}: key 'dist' has {arr.size} numbers, at most 5 (k1 k2 p1 p2 k3)"
+                )
+            dist = arr
+        size = {}
+        for key in ("width", "height"):
+            if key not in d:
+                raise CameraFileError(f"{where}: missing key {key!r}")
+            v = d[key]
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or v <= 0 or int(v) != v:
+                raise CameraFileError(f"{where}: key {key!r} must be a positive integer, got {v!r}")
+            size[key] = int(v)
+        R = values["R"]
+        if not np.allclose(R @ R.T, np.eye(3), atol=1e-5) or np.linalg.det(R) < 0:
+            raise CameraFileError(f"{where}: key 'R' is not a rotation matrix (R R^T != I or det < 0)")
+        return cls(values["K"], R, values["t"], dist, name=name, **size)
+
+
+def _checked_array(value, shape, where: str) -> np.ndarray:
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise CameraFileError(f"{where} must hold numbers, got {value!r}") from None
+    if shape is not None and arr.shape != shape:
+        if arr.size == math.prod(shape):
+            arr = arr.reshape(shape)
+        else:
+            raise CameraFileError(f"{where} must have shape {shape}, got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise CameraFileError(f"{where} holds non-finite numbers")
+    return arr
+
+
+class CameraRig(dict):
+    """An ordered ``dict`` of name -> :class:`Camera` plus ``depth_camera`` (the name of the depth sensor
+    whose points are in ``points/``, or None). Order is the file order, which is the ``V`` axis of
+    multi-camera observations."""
+
+    def __init__(
+        self, cameras: Mapping[str, Camera] | Iterable[Camera] = (), depth_camera: str | None = None
+    ):
+        if isinstance(cameras, Mapping):
+            super().__init__(cameras)
+        else:
+            super().__init__()
+            for cam in cameras:
+                if cam.name in self:
+                    raise ValueError(f"duplicate camera name {cam.name!r}")
+                self[cam.name] = cam
+        if depth_camera is not None and depth_camera not in self:
+            raise ValueError(f"depth_camera {depth_camera!r} is not one of {list(self)}")
+        self.depth_camera = depth_camera
+
+    @property
+    def cameras(self) -> list[Camera]:
+        return list(self.values())
+
+
+# ---------------------------------------------------------------------- files
+_FS_KEYS = {
+    "K": ("K", "camera_matrix", "cameraMatrix", "CameraMatrix", "intrinsics", "M", "M1", "mtx"),
+    "dist": ("dist", "D", "distortion_coefficients", "distCoeffs", "dist_coeffs", "distortion", "D1"),
+    "R": ("R", "rotation", "rotation_matrix", "Rot"),
+    "rvec": ("rvec", "rvecs", "rotation_vector"),
+    "t": ("t", "T", "tvec", "tvecs", "translation", "translation_vector"),
+    "width": ("width", "image_width", "imageWidth", "cols"),
+    "height": ("height", "image_height", "imageHeight", "rows"),
+    "size": ("image_size", "imageSize", "size", "img_size"),
+}
+
+
+def _is_filestorage(text: str) -> bool:
+    head = text.lstrip()[:200]
+    return (
+        head.startswith("%YAML:")
+        or head.startswith("<?xml")
+        or "<opencv_storage>" in head
+        or ("!!opencv-matrix" in text)
+    )
+
+
+def _fs_value(node):
+    if node.isMap() and "data" in node.keys() and "rows" in node.keys():
+        return node.mat()
+    if node.isMap():
+        return {k: _fs_value(node.getNode(k)) for k in node.keys()}
+    if node.isSeq():
+        return [_fs_value(node.at(i)) for i in range(node.size())]
+    if node.isInt() or node.isReal():
+        return node.real()
+    if node.isString():
+        return node.string()
+    mat = node.mat()
+    return mat
+
+
+def _camera_from_fs_map(m: Mapping, name: str, source: str) -> Camera:
+    def pick(key):
+        for alias in _FS_KEYS[key]:
+            if alias in m:
+                return m[alias]
+        return None
+
+    where = f"{source}: camera {name!r}"
+    K = pick("K")
+    if K is None:
+        raise CameraFileError(f"{where}: missing key 'camera_matrix' (or one of {_FS_KEYS['K']})")
+    K = _checked_array(K, (3, 3), f"{where}: key 'camera_matrix'")
+    dist = pick("dist")
+    dist = None if dist is None else _checked_array(dist, None, f"{where}: key 'distortion'").reshape(-1)
+    R, rvec = pick("R"), pick("rvec")
+    if R is not None:
+        R = _checked_array(R, (3, 3), f"{where}: key 'R'")
+    elif rvec is not None:
+        import cv2
+
+        rv = _checked_array(rvec, None, f"{where}: key 'rvec'").reshape(-1)
+        if rv.size != 3:
+            raise CameraFileError(f"{where}: key 'rvec' must hold 3 numbers (one view), got {rv.size}")
+        R = cv2.Rodrigues(rv)[0]
+    else:
+        R = np.eye(3)
+    t = pick("t")
+    t = np.zeros(3) if t is None else _checked_array(t, (3,), f"{where}: key 't'")
+    w, h = pick("width"), pick("height")
+    size = pick("size")
+    if (w is None or h is None) and size is not None:
+        sz = np.asarray(size, dtype=np.float64).reshape(-1)
+        w, h = sz[0], sz[1]  # OpenCV writes Size as (width, height)
+    if w is None or h is None:
+        raise CameraFileError(f"{where}: missing key 'image_width'/'image_height' (or 'image_size')")
+    return Camera(K, R, t, dist, width=int(w), height=int(h), name=name)
+
+
+def load_opencv_camera(path: str | os.PathLike, name: str | None = None) -> CameraRig:
+    """Read a ``cv2.FileStorage`` YAML/XML calibration file.
+
+    Accepted layouts: one camera at the top level (``camera_matrix``/``cameraMatrix``/``K``,
+    ``distortion_coefficients``/``distCoeffs``/``D``, ``image_width`` + ``image_height`` or
+    ``image_size``, optional extrinsics ``R`` or ``rvec`` and ``T``/``tvec``; identity pose when absent),
+    or one top-level map per camera holding those keys. Returns a :class:`CameraRig`.
+    """
+    import cv2
+
+    path = os.fspath(path)
+    fs = cv2.FileStorage(path, cv2.FILE_STORAGE_READ)
+    if not fs.isOpened():
+        raise CameraFileError(f"{path}: OpenCV cannot read this file as FileStorage YAML/XML")
+    try:
+        root = fs.root()
+        data = {k: _fs_value(root.getNode(k)) for k in root.keys()}
+    finally:
+        fs.release()
+    if any(alias in data for alias in _FS_KEYS["K"]):
+        cam_name = name or os.path.splitext(os.path.basename(path))[0]
+        return CameraRig([_camera_from_fs_map(data, cam_name, path)])
+    cams = [_camera_from_fs_map(v, k, path) for k, v in data.items() if isinstance(v, Mapping)]
+    if not cams:
+        raise CameraFileError(f"{path}: no camera found (expected key 'camera_matrix' or per-camera maps)")
+    depth = data.get("depth_camera")
+    return CameraRig(cams, depth_camera=depth if isinstance(depth, str) else None)
+
+
+def load_cameras(path: str | os.PathLike) -> CameraRig:
+    """Read ``cameras.yaml`` (module docstring) or an OpenCV FileStorage file; see :func:`load_opencv_camera`.
+
+    Returns:
+        :class:`CameraRig` (ordered name -> :class:`Camera`, with ``depth_camera``).
+
+    Raises:
+        FileNotFoundError: no such file. CameraFileError: malformed content (message names file and key).
+    """
+    import yaml
+
+    path = os.fspath(path)
+    with open(path, encoding="utf-8") as f:
+        text = f.read()
+    if _is_filestorage(text):
+        return load_opencv_camera(path)
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        raise CameraFileError(f"{path}: not valid YAML ({e})") from None
+    if not isinstance(data, Mapping):
+        raise CameraFileError(f"{path}: expected a mapping with key 'cameras'")
+    unknown = set(data) - {"cameras", "depth_camera"}
+    if "cameras" not in data:
+        raise CameraFileError(f"{path}: missing key 'cameras'")
+    if unknown:
+        raise CameraFileError(f"{path}: unknown top-level key(s) {sorted(unknown)}")
+    cams_data = data["cameras"]
+    if not isinstance(cams_data, Mapping) or not cams_data:
+        raise CameraFileError(f"{path}: key 'cameras' must map camera names to camera entries")
+    cams = [Camera.from_dict(v, name=str(k), source=path) for k, v in cams_data.items()]
+    depth = data.get("depth_camera")
+    if depth is not None and str(depth) not in {c.name for c in cams}:
+        raise CameraFileError(f"{path}: key 'depth_camera' names {depth!r}, not one of the cameras")
+    return CameraRig(cams, depth_camera=None if depth is None else str(depth))
+
+
+def save_cameras(
+    path: str | os.PathLike,
+    cameras: Mapping[str, Camera] | Sequence[Camera],
+    depth_camera: str | None = None,
+) -> None:
+    """Write ``cameras.yaml`` atomically (temp file + ``os.replace``).
+
+    Args:
+        cameras: a :class:`CameraRig`, a name -> camera mapping or a sequence (names from ``cam.name``).
+        depth_camera: name of the depth sensor; defaults to ``cameras.depth_camera`` for a rig.
+    """
+    import yaml
+
+    rig = cameras if isinstance(cameras, CameraRig) else CameraRig(cameras)
+    depth = depth_camera if depth_camera is not None else rig.depth_camera
+    if depth is not None and depth not in rig:
+        raise ValueError(f"depth_camera {depth!r} is not one of {list(rig)}")
+    data: dict = {"cameras": {str(k): cam.to_dict() for k, cam in rig.items()}}
+    if depth is not None:
+        data["depth_camera"] = depth
+    _atomic_write(path, yaml.safe_dump(data, sort_keys=False, default_flow_style=None))
+
+
+# ---------------------------------------------------------------------- rigs
+def look_at(
+    eye: Sequence[float],
+    target: Sequence[float] = (0.0, 0.0, 1.0),
+    *,
+    up: Sequence[float] = (0.0, 0.0, 1.0),
+    width: int = 640,
+    height: int = 480,
+    fov_deg: float = 60.0,
+    name: str = "cam",
+) -> Camera:
+    """A distortion-free camera at ``eye`` looking at ``target`` with world ``up`` pointing up in the image.
+
+    ``fov_deg`` is the horizontal field of view; square pixels, principal point at the image centre.
+    """
+    eye_, tgt, up_ = (np.asarray(v, dtype=np.float64) for v in (eye, target, up))
+    z = tgt - eye_
+    if np.linalg.norm(z) < 1e-9:
+        raise ValueError("eye and target coincide")
+    z /= np.linalg.norm(z)
+    x = np.cross(z, up_)
+    if np.linalg.norm(x) < 1e-9:  # looking straight along up: pick any horizontal x axis
+        x = np.cross(z, np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0]))
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)  # image y points down, i.e. against world up
+    R = np.stack([x, y, z])
+    t = -R @ eye_
+    f = 0.5 * width / math.tan(math.radians(fov_deg) / 2)
+    K = np.array([[f, 0.0, (width - 1) / 2], [0.0, f, (height - 1) / 2], [0.0, 0.0, 1.0]])
+    return Camera(K, R, t, None, width=width, height=height, name=name)
+
+
+def camera_ring(
+    n: int = 3,
+    *,
+    radius: float = 4.0,
+    height: float = 1.5,
+    target: Sequence[float] = (0.0, 0.0, 1.0),
+    width: int = 160,
+    height_px: int = 120,
+    fov_deg: float = 50.0,
+    start_deg: float = -90.0,
+    prefix: str = "cam",
+) -> CameraRig:
+    """``n`` cameras evenly spaced on a horizontal circle of ``radius`` (m) around ``target``, at ``height``
+    (m) above the ground, all looking at ``target``. ``start_deg`` is the azimuth of the first camera
+    (-90: on the -y axis, facing +y). ``n=3`` is the triangle set-up of Fontmarty et al."""
+    tx, ty, _ = (float(v) for v in target)
+    cams = []
+    for i in range(n):
+        phi = math.radians(start_deg + 360.0 * i / n)
+        eye = (tx + radius * math.cos(phi), ty + radius * math.sin(phi), height)
+        cams.append(look_at(eye, target, width=width, height=height_px, fov_deg=fov_deg, name=f"{prefix}{i}"))
+    return CameraRig(cams)

@@ -1,0 +1,487 @@
+"""Synthetic observations of a capsule body, and the sequence directory read by ``python -m torchpf track``.
+
+:func:`synthesize` renders, for every frame of a motion (angles (T, D) in ``skeleton.dof_names`` order):
+
+* silhouettes per camera, by casting a ray through every pixel centre against the capsules (exact
+  perspective, :func:`torchpf.geometry.raycast_capsules`), optionally corrupted by segmentation noise
+  (random erosion/dilation, speckle), static occluders (image rectangles that hide the body) and missing
+  frames;
+* a point cloud from a virtual depth camera: first ray hits (self-occlusion respected), Gaussian noise
+  along the ray, a share of outliers spread over the body's bounding box;
+* 2D joint detections per camera with Gaussian pixel noise, dropped detections and occluded joints as NaN;
+* the ground truth angles.
+
+:func:`write_sequence` / :func:`read_sequence` store it in the layout of DESIGN.md::
+
+    SEQ/cameras.yaml                  cameras (torchpf.camera format), depth_camera when points exist
+    SEQ/masks/<camera>/<frame:06d>.png   silhouettes, 0/255 (a missing file is a missing frame)
+    SEQ/points/<frame:06d>.npy        (K, 3) float32 world points (m)
+    SEQ/truth.csv                     header ``time,<dof names...>``, one row per frame
+    SEQ/keypoints.npz                 (extension) uv (T, V, J, 2) NaN = missing, joints, cameras
+
+Example::
+
+    from torchpf.synth import synthesize, write_sequence
+    seq = synthesize(skel, angles, camera_ring(3), depth_camera=look_at((0, -3, 1.5), name="depth"),
+                     options=SynthOptions(speckle=0.01), seed=0)
+    write_sequence("out/seq", seq)
+    frame = seq.frame(0)             # torchpf.observations.Frame for the likelihoods
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import os
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from torchpf.camera import Camera, CameraRig, _atomic_write, load_cameras, save_cameras
+from torchpf.geometry import raycast_capsules
+from torchpf.observations import Frame, Keypoints2D, PointCloud, Silhouettes
+
+__all__ = [
+    "SequenceData",
+    "SynthOptions",
+    "load_truth_csv",
+    "read_sequence",
+    "render_depth",
+    "render_silhouette",
+    "save_truth_csv",
+    "synthesize",
+    "write_sequence",
+]
+
+
+# ---------------------------------------------------------------------- truth.csv
+def save_truth_csv(path, angles, dof_names, times=None) -> None:
+    """Write angles (T, D) as CSV: header ``[time,]<dof names>``, one row per frame; atomic.
+
+    Same format as the mocap CSV of DESIGN.md (``training.mocap.save_csv``), so either reader loads it.
+    """
+    a = np.asarray(angles.detach().cpu() if isinstance(angles, torch.Tensor) else angles, dtype=np.float64)
+    if a.ndim != 2 or a.shape[1] != len(dof_names):
+        raise ValueError(f"angles must have shape (T, {len(dof_names)}), got {a.shape}")
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow((["time"] if times is not None else []) + list(dof_names))
+    t = None if times is None else np.asarray(times, dtype=np.float64).reshape(-1)
+    for i, row in enumerate(a):
+        w.writerow(([repr(float(t[i]))] if t is not None else []) + [repr(float(x)) for x in row])
+    _atomic_write(path, buf.getvalue())
+
+
+def load_truth_csv(path) -> tuple[torch.Tensor, list[str], np.ndarray | None]:
+    """Read a CSV written by :func:`save_truth_csv` (or ``training.mocap.save_csv``).
+
+    Returns:
+        angles (T, D) float64 tensor, dof names, times (T,) or None when there is no ``time`` column.
+    """
+    path = os.fspath(path)
+    with open(path, newline="", encoding="utf-8") as f:
+        rows = list(csv.reader(f))
+    if not rows:
+        raise ValueError(f"{path}: empty file, expected a header row")
+    header = [h.strip() for h in rows[0]]
+    has_time = bool(header) and header[0] == "time"
+    names = header[1:] if has_time else header
+    data = []
+    for i, row in enumerate(rows[1:], start=2):
+        if not row:
+            continue
+        if len(row) != len(header):
+            raise ValueError(f"{path}: line {i} has {len(row)} fields, the header {len(header)}")
+        try:
+            data.append([float(x) for x in row])
+        except ValueError:
+            raise ValueError(f"{path}: line {i} holds a non-number") from None
+    arr = np.asarray(data, dtype=np.float64).reshape(-1, len(header))
+    times = arr[:, 0] if has_time else None
+    angles = arr[:, 1:] if has_time else arr
+    return torch.from_numpy(np.ascontiguousarray(angles)), names, times
+
+
+# ---------------------------------------------------------------------- rendering
+def _bone_ends(skeleton, theta):
+    ends, radii = skeleton.capsules(theta)
+    return ends[..., 0, :], ends[..., 1, :], radii
+
+
+def _ray_hits(camera: Camera, a, b, r, height: int, width: int) -> torch.Tensor:
+    rays = camera.pixel_rays(height, width).to(a)
+    origin = camera.center.to(a)
+    return raycast_capsules(origin, rays.reshape(-1, 3), a, b, r).reshape(height, width)
+
+
+def render_silhouette(skeleton, theta, camera: Camera, height: int | None = None, width: int | None = None):
+    """Exact silhouette of the capsule body in ``theta`` (D,) seen by ``camera``: (H, W) bool, a pixel is
+    foreground when the ray through its centre hits a capsule. Default size: the camera's."""
+    a, b, r = _bone_ends(skeleton, torch.as_tensor(theta, dtype=torch.float64))
+    H, W = height or camera.height, width or camera.width
+    return torch.isfinite(_ray_hits(camera, a, b, r, H, W))
+
+
+def render_depth(skeleton, theta, camera: Camera, height: int | None = None, width: int | None = None):
+    """Depth image of the body: (H, W) z-depth (m) along ``camera``'s optical axis, 0 where no capsule is hit.
+    Matches the input convention of :func:`torchpf.observations.depth_to_points`."""
+    a, b, r = _bone_ends(skeleton, torch.as_tensor(theta, dtype=torch.float64))
+    H, W = height or camera.height, width or camera.width
+    t = _ray_hits(camera, a, b, r, H, W)
+    rays_c = camera.pixel_rays(H, W) @ camera.R.T
+    z = t * rays_c[..., 2]
+    return torch.where(torch.isfinite(z), z, torch.zeros_like(z))
+
+
+@dataclass(kw_only=True)
+class SynthOptions:
+    """Corruptions applied by :func:`synthesize` (all off by default: clean data).
+
+    Masks: ``morph_px`` - each (frame, camera) mask is eroded or dilated by a random radius in
+    ``[-morph_px, morph_px]`` pixels; ``speckle`` - share of pixels flipped; ``missing_frames`` -
+    probability that a camera's frame is dropped (mask None, its detections NaN); ``occluders`` - number of
+    static rectangles per camera, each ``occluder_size`` (share of the image side) wide, that hide the body
+    (mask 0, detections NaN, depth pixels dropped when the depth camera is occluded).
+    Depth: ``depth_noise`` (m, along the ray), ``outliers`` (share of extra points uniform in the body's
+    bounding box enlarged by ``outlier_margin`` m), ``n_points`` (keep at most this many, random subset).
+    2D points: ``keypoint_noise`` (pixels), ``keypoint_dropout`` (probability a detection is missing).
+    """
+
+    morph_px: int = 0
+    speckle: float = 0.0
+    missing_frames: float = 0.0
+    occluders: int = 0
+    occluder_size: float = 0.2
+    depth_noise: float = 0.0
+    outliers: float = 0.0
+    outlier_margin: float = 0.3
+    n_points: int | None = None
+    keypoint_noise: float = 0.0
+    keypoint_dropout: float = 0.0
+
+
+@dataclass(eq=False)
+class SequenceData:
+    """A multi-camera sequence in memory (synthetic or read from disk).
+
+    Fields:
+        cameras: :class:`~torchpf.camera.CameraRig` of the mask cameras (``V``), in mask order.
+        masks: T lists of V uint8 (H, W) 0/255 arrays, None for a missing frame.
+        points: T arrays (K, 3) float32 world points, or None (no depth data).
+        depth_camera: the depth sensor (None without points).
+        keypoints: (T, V, J, 2) float pixels in the mask grid, NaN = missing, or None;
+            ``keypoint_joints`` their names.
+        truth: (T, D) angles or None; ``dof_names``; ``times`` (T,) seconds or None.
+    """
+
+    cameras: CameraRig
+    masks: list = field(default_factory=list)
+    points: list | None = None
+    depth_camera: Camera | None = None
+    keypoints: np.ndarray | None = None
+    keypoint_joints: list[str] | None = None
+    truth: torch.Tensor | None = None
+    dof_names: list[str] | None = None
+    times: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        for x in (self.masks, self.points, self.truth, self.keypoints):
+            if x is not None and len(x):
+                return len(x)
+        return 0
+
+    def frame(self, t: int) -> Frame:
+        """The observations of frame ``t`` as a :class:`~torchpf.observations.Frame`."""
+        sil = None
+        if self.masks and t < len(self.masks):
+            row = self.masks[t]
+            shape = next((m.shape for m in row if m is not None), None)
+            if shape is not None:
+                stack = np.stack([m if m is not None else np.zeros(shape, np.uint8) for m in row])
+                valid = torch.tensor([m is not None for m in row])
+                sil = Silhouettes(torch.from_numpy(stack > 127).float(), valid)
+        pts = None
+        if self.points is not None and t < len(self.points) and self.points[t] is not None:
+            pts = PointCloud(torch.from_numpy(np.asarray(self.points[t], dtype=np.float32)))
+        kp = None
+        if self.keypoints is not None and t < len(self.keypoints):
+            kp = Keypoints2D(torch.from_numpy(np.asarray(self.keypoints[t], dtype=np.float32)))
+        return Frame(silhouettes=sil, points=pts, keypoints=kp)
+
+
+def _perturb_mask(mask: np.ndarray, opts: SynthOptions, rng: np.random.Generator) -> np.ndarray:
+    import cv2
+
+    m = mask.astype(np.uint8) * 255
+    if opts.morph_px > 0:
+        k = int(rng.integers(-opts.morph_px, opts.morph_px + 1))
+        if k != 0:
+            se = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * abs(k) + 1, 2 * abs(k) + 1))
+            m = cv2.dilate(m, se) if k > 0 else cv2.erode(m, se)
+    if opts.speckle > 0:
+        flip = rng.random(m.shape) < opts.speckle
+        m = np.where(flip, 255 - m, m).astype(np.uint8)
+    return m
+
+
+def _occluder_boxes(opts: SynthOptions, width: int, height: int, rng: np.random.Generator):
+    boxes = []
+    for _ in range(opts.occluders):
+        bw, bh = max(1, int(opts.occluder_size * width)), max(1, int(opts.occluder_size * height))
+        x0, y0 = int(rng.integers(0, max(1, width - bw))), int(rng.integers(0, max(1, height - bh)))
+        boxes.append((x0, y0, x0 + bw, y0 + bh))
+    return boxes
+
+
+def _in_boxes(u, v, boxes) -> np.ndarray:
+    hit = np.zeros(np.shape(u), dtype=bool)
+    for x0, y0, x1, y1 in boxes:
+        hit |= (u >= x0 - 0.5) & (u < x1 - 0.5) & (v >= y0 - 0.5) & (v < y1 - 0.5)
+    return hit
+
+
+def synthesize(
+    skeleton,
+    motion,
+    cameras,
+    *,
+    depth_camera: Camera | str | None = None,
+    mask_size: tuple[int, int] | None = None,
+    keypoint_joints: list[str] | None = None,
+    options: SynthOptions | None = None,
+    fps: float = 30.0,
+    seed: int | None = 0,
+) -> SequenceData:
+    """Render a synthetic multi-camera sequence of the capsule body (module docstring).
+
+    Args:
+        skeleton: provides ``capsules``, ``fk``, ``dof_names``, ``joint_names``.
+        motion: (T, D) angles in ``skeleton.dof_names`` order (tensor or array).
+        cameras: :class:`~torchpf.camera.CameraRig` or list of cameras for the silhouettes/2D points.
+        depth_camera: a camera (or the name of one in ``cameras``) for point clouds; None for no points
+            (default: ``cameras.depth_camera`` when set).
+        mask_size: (width, height) of the masks (default: each camera's image size).
+        keypoint_joints: joints whose 2D detections are simulated (default: all).
+        options: :class:`SynthOptions` corruptions (default: none).
+        fps: frame rate for the ``time`` column. seed: seed of the noise (numpy ``Generator``).
+
+    Returns:
+        :class:`SequenceData`.
+    """
+    opts = options or SynthOptions()
+    rng = np.random.default_rng(seed)
+    rig = cameras if isinstance(cameras, CameraRig) else CameraRig(cameras)
+    if depth_camera is None and rig.depth_camera is not None:
+        depth_camera = rig.depth_camera
+    if isinstance(depth_camera, str):
+        depth_camera = rig[depth_camera]
+    angles = (
+        torch.as_tensor(np.asarray(motion), dtype=torch.float64)
+        if not isinstance(motion, torch.Tensor)
+        else motion
+    )
+    angles = angles.detach().to(torch.float64).cpu()
+    if angles.ndim != 2 or angles.shape[1] != len(skeleton.dof_names):
+        raise ValueError(f"motion must have shape (T, {len(skeleton.dof_names)}), got {tuple(angles.shape)}")
+    T = angles.shape[0]
+    cams = rig.cameras
+    sizes = [mask_size or (c.width, c.height) for c in cams]
+    rays = [c.pixel_rays(h, w).reshape(-1, 3) for c, (w, h) in zip(cams, sizes, strict=True)]
+    boxes = [_occluder_boxes(opts, w, h, rng) for (w, h) in sizes]
+    joint_names = list(keypoint_joints or skeleton.joint_names)
+    jidx = [list(skeleton.joint_names).index(j) for j in joint_names]
+    if depth_camera is not None:
+        d_rays = depth_camera.pixel_rays().reshape(-1, 3)
+        d_boxes = _occluder_boxes(opts, depth_camera.width, depth_camera.height, rng)
+        dv, du = np.meshgrid(np.arange(depth_camera.height), np.arange(depth_camera.width), indexing="ij")
+        d_keep = ~_in_boxes(du.reshape(-1), dv.reshape(-1), d_boxes)
+
+    masks, points, kps = (
+        [],
+        [] if depth_camera is not None else None,
+        np.full((T, len(cams), len(jidx), 2), np.nan),
+    )
+    for f in range(T):
+        a, b, r = _bone_ends(skeleton, angles[f])
+        joints = skeleton.fk(angles[f])[jidx]
+        row = []
+        for v, cam in enumerate(cams):
+            w, h = sizes[v]
+            if opts.missing_frames > 0 and rng.random() < opts.missing_frames:
+                row.append(None)
+                continue
+            hit = torch.isfinite(raycast_capsules(cam.center, rays[v], a, b, r)).reshape(h, w).numpy()
+            if boxes[v]:
+                vv, uu = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
+                hit = hit & ~_in_boxes(uu, vv, boxes[v])
+            row.append(_perturb_mask(hit, opts, rng))
+            uv = cam.resized(w, h).project(joints).numpy()
+            uv = uv + rng.normal(0.0, opts.keypoint_noise, uv.shape) if opts.keypoint_noise > 0 else uv
+            lost = ~cam.in_front(joints).numpy() | _in_boxes(uv[:, 0], uv[:, 1], boxes[v])
+            if opts.keypoint_dropout > 0:
+                lost |= rng.random(len(jidx)) < opts.keypoint_dropout
+            uv[lost] = np.nan
+            kps[f, v] = uv
+        masks.append(row)
+        if depth_camera is not None:
+            t_hit = raycast_capsules(depth_camera.center, d_rays, a, b, r).numpy()
+            ok = np.isfinite(t_hit) & d_keep
+            t_ok = t_hit[ok]
+            if opts.depth_noise > 0:
+                # Noise on z-depth, turned into ray length through the ray's obliquity.
+                cos = (d_rays[ok].numpy() @ depth_camera.R.numpy().T)[:, 2]
+                t_ok = t_ok + rng.normal(0.0, opts.depth_noise, t_ok.shape) / cos
+            pts = depth_camera.center.numpy() + d_rays[ok].numpy() * t_ok[:, None]
+            if opts.outliers > 0 and len(pts):
+                n_out = int(round(opts.outliers * len(pts)))
+                lo = torch.minimum(a, b).amin(0).numpy() - opts.outlier_margin
+                hi = torch.maximum(a, b).amax(0).numpy() + opts.outlier_margin
+                pts = np.concatenate([pts, rng.uniform(lo, hi, (n_out, 3))])
+            if opts.n_points is not None and len(pts) > opts.n_points:
+                pts = pts[rng.choice(len(pts), opts.n_points, replace=False)]
+            points.append(pts.astype(np.float32))
+    return SequenceData(
+        cameras=CameraRig(cams, depth_camera=None),
+        masks=masks,
+        points=points,
+        depth_camera=depth_camera,
+        keypoints=kps,
+        keypoint_joints=joint_names,
+        truth=angles.clone(),
+        dof_names=list(skeleton.dof_names),
+        times=np.arange(T) / fps,
+    )
+
+
+# ---------------------------------------------------------------------- directory I/O
+def write_sequence(path, seq: SequenceData) -> None:
+    """Write ``seq`` as a sequence directory (module docstring); every file is written atomically."""
+    import cv2
+
+    root = os.fspath(path)
+    cams = CameraRig(seq.cameras.cameras)
+    depth_name = None
+    if seq.points is not None and seq.depth_camera is not None:
+        depth_name = seq.depth_camera.name
+        if depth_name not in cams:
+            cams = CameraRig(list(cams.values()) + [seq.depth_camera])
+    save_cameras(os.path.join(root, "cameras.yaml"), cams, depth_camera=depth_name)
+    names = list(seq.cameras.keys())
+    for t, row in enumerate(seq.masks):
+        for name, m in zip(names, row, strict=True):
+            if m is None:
+                continue
+            ok, buf = cv2.imencode(".png", np.where(np.asarray(m) > 127, 255, 0).astype(np.uint8))
+            if not ok:
+                raise OSError(f"cannot encode mask {name}/{t:06d}.png")
+            _atomic_write(os.path.join(root, "masks", name, f"{t:06d}.png"), buf.tobytes())
+    if seq.points is not None:
+        for t, pts in enumerate(seq.points):
+            if pts is None:
+                continue
+            b = io.BytesIO()
+            np.save(b, np.asarray(pts, dtype=np.float32))
+            _atomic_write(os.path.join(root, "points", f"{t:06d}.npy"), b.getvalue())
+    if seq.truth is not None:
+        save_truth_csv(os.path.join(root, "truth.csv"), seq.truth, seq.dof_names, seq.times)
+    if seq.keypoints is not None:
+        b = io.BytesIO()
+        np.savez(
+            b,
+            uv=np.asarray(seq.keypoints, dtype=np.float32),
+            joints=np.asarray(seq.keypoint_joints or []),
+            cameras=np.asarray(names),
+        )
+        _atomic_write(os.path.join(root, "keypoints.npz"), b.getvalue())
+
+
+def _frame_index(name: str, path: str) -> int:
+    stem = os.path.splitext(name)[0]
+    if not stem.isdigit():
+        raise ValueError(f"{path}: unexpected file {name!r} (frames are named <frame:06d>)")
+    return int(stem)
+
+
+def read_sequence(path) -> SequenceData:
+    """Read a sequence directory (module docstring). The frame count is the largest frame index found in
+    ``masks/``, ``points/`` or ``truth.csv``; a missing mask or point file reads as None. A
+    ``video/<camera>.mp4`` without masks is not segmented here: use
+    :func:`torchpf.observations.silhouettes_from_video`.
+    """
+    import cv2
+
+    root = os.fspath(path)
+    cam_file = os.path.join(root, "cameras.yaml")
+    if not os.path.isfile(cam_file):
+        raise FileNotFoundError(f"{root}: not a sequence directory (no cameras.yaml)")
+    rig = load_cameras(cam_file)
+    depth = rig[rig.depth_camera] if rig.depth_camera else None
+    mask_dir = os.path.join(root, "masks")
+    names = [n for n in rig if os.path.isdir(os.path.join(mask_dir, n))]
+    if not names:
+        names = [n for n in rig if n != rig.depth_camera]
+    files: dict[str, dict[int, str]] = {}
+    T = 0
+    for n in names:
+        d = os.path.join(mask_dir, n)
+        files[n] = {}
+        if os.path.isdir(d):
+            for fn in os.listdir(d):
+                if fn.endswith(".png"):
+                    files[n][_frame_index(fn, d)] = os.path.join(d, fn)
+            T = max([T] + [i + 1 for i in files[n]])
+    pts_files: dict[int, str] = {}
+    pdir = os.path.join(root, "points")
+    if os.path.isdir(pdir):
+        for fn in os.listdir(pdir):
+            if fn.endswith(".npy"):
+                pts_files[_frame_index(fn, pdir)] = os.path.join(pdir, fn)
+        T = max([T] + [i + 1 for i in pts_files])
+    truth = dof = times = None
+    tpath = os.path.join(root, "truth.csv")
+    if os.path.isfile(tpath):
+        truth, dof, times = load_truth_csv(tpath)
+        T = max(T, truth.shape[0])
+    masks = []
+    for t in range(T):
+        row = []
+        for n in names:
+            f = files[n].get(t)
+            if f is None:
+                row.append(None)
+                continue
+            m = cv2.imread(f, cv2.IMREAD_GRAYSCALE)
+            if m is None:
+                raise OSError(f"{f}: cannot read as an image")
+            row.append(m)
+        masks.append(row)
+    points = None
+    if pts_files:
+        points = []
+        for t in range(T):
+            f = pts_files.get(t)
+            if f is None:
+                points.append(None)
+                continue
+            arr = np.load(f)
+            if arr.ndim != 2 or arr.shape[1] != 3:
+                raise ValueError(f"{f}: expected a (K, 3) array, got shape {arr.shape}")
+            points.append(arr.astype(np.float32))
+    kps = kj = None
+    kpath = os.path.join(root, "keypoints.npz")
+    if os.path.isfile(kpath):
+        with np.load(kpath) as z:
+            kps, kj = z["uv"], [str(j) for j in z["joints"]]
+    mask_cams = CameraRig([rig[n] for n in names])
+    return SequenceData(
+        cameras=mask_cams,
+        masks=masks,
+        points=points,
+        depth_camera=depth,
+        keypoints=kps,
+        keypoint_joints=kj,
+        truth=truth,
+        dof_names=dof,
+        times=times,
+    )
