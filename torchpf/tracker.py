@@ -1,0 +1,444 @@
+"""High-level tracker: skeleton + likelihood(s) + motion prior + particle filter in one ``nn.Module``.
+
+``Tracker`` assembles the pieces from keyword arguments (or a small YAML/dict config) and runs them on a
+sequence: a sequence directory of DESIGN.md, a :class:`~torchpf.synth.SequenceData` in memory, or a list of
+:class:`~torchpf.observations.Frame` s. The result is an estimated motion (mocap-CSV-able), per-frame ESS,
+the log-evidence and per-frame failure flags.
+
+Pieces by name:
+
+* likelihoods (:data:`LIKELIHOODS`): ``silhouette`` (Fontmarty eq. 2), ``dual_silhouette``, ``overlap``
+  (Rius eq. 7), ``pointcloud`` (Hauberg eq. 15), ``keypoints`` (Brubaker eq. 3-4), ``chamfer``, ``skin``;
+  several combine with per-term weights (:class:`~torchpf.likelihoods.ProductLikelihood`).
+* filters (:data:`FILTERS`): ``sir`` (= ``condensation``), ``qrs``, ``partitioned``, ``partitioned_qrs``,
+  ``apf``, ``mcmc`` (Fontmarty Tables 1-4, Brubaker Alg. 1-4). ``n_particles`` is the number of likelihood
+  evaluations per frame for every filter (Fontmarty's equal-budget protocol): the APF runs
+  ``n_particles / L`` particles per layer, the partitioned filter ``n_particles / M`` per stage.
+* motion priors: any object following :mod:`torchpf.filters.protocols`, or a name registered under the
+  ``torchpf.dynamics`` entry-point group (the ``priors`` package registers ``random_walk``,
+  ``constant_velocity``, ``damped``, ``action``...). torchpf itself never imports ``priors``.
+
+Initialisation (the papers initialise "by hand"): from the first frame of the ground truth when the sequence
+has one, or from a pose given by the user; particles are that pose plus Gaussian noise of ``init_spread``
+(rad for angles, m for translations), clamped to the joint limits.
+
+Example::
+
+    tracker = Tracker(skel, cameras, likelihood="silhouette", dynamics="random_walk", filter="apf",
+                      n_particles=600)
+    result = tracker.track("data/seq01")              # a sequence directory
+    result.save_csv("track.csv"); result.ess          # (T,) effective sample size per frame
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from importlib.metadata import entry_points
+from typing import Any
+
+import torch
+from torch import nn
+
+from torchpf import likelihoods as L
+from torchpf.filters import (
+    AnnealedParticleFilter,
+    MCMCParticleFilter,
+    ParticleFilter,
+    PartitionedParticleFilter,
+)
+from torchpf.io import write_mocap_csv
+
+LIKELIHOODS: dict[str, type] = {
+    "silhouette": L.SilhouetteLikelihood,
+    "dual_silhouette": L.DualSilhouetteLikelihood,
+    "overlap": L.OverlapLikelihood,
+    "pointcloud": L.PointCloudLikelihood,
+    "keypoints": L.Keypoints2DLikelihood,
+    "chamfer": L.ChamferLikelihood,
+    "skin": L.SkinBlobLikelihood,
+}
+FILTERS = ("sir", "condensation", "qrs", "partitioned", "partitioned_qrs", "apf", "mcmc")
+DYNAMICS_GROUP = "torchpf.dynamics"
+
+
+def available_dynamics() -> dict[str, Any]:
+    """Motion priors registered under the ``torchpf.dynamics`` entry-point group: name -> entry point."""
+    return {ep.name: ep for ep in entry_points(group=DYNAMICS_GROUP)}
+
+
+def make_dynamics(name: str, skeleton, **options) -> Any:
+    """Build the registered motion prior ``name`` for ``skeleton`` (``factory(skeleton, **options)``)."""
+    eps = available_dynamics()
+    if name not in eps:
+        raise ValueError(f"unknown dynamics {name!r}; registered: {sorted(eps)}")
+    return eps[name].load()(skeleton, **options)
+
+
+def make_likelihood(skeleton, cameras, spec, options: Mapping[str, Mapping] | None = None) -> nn.Module:
+    """A likelihood module from a name, a list of names or ``{name: weight}`` (weights of the log terms).
+
+    ``options[name]`` holds constructor keywords of that term (e.g. ``{"silhouette": {"sigma": 0.2}}``).
+    """
+    if isinstance(spec, nn.Module):
+        return spec
+    options = dict(options or {})
+    weights = (
+        {spec: 1.0}
+        if isinstance(spec, str)
+        else dict(spec)
+        if isinstance(spec, Mapping)
+        else {name: 1.0 for name in spec}
+    )
+    terms = {}
+    for name in weights:
+        if name not in LIKELIHOODS:
+            raise ValueError(f"unknown likelihood {name!r}; choose from {sorted(LIKELIHOODS)}")
+        cls = LIKELIHOODS[name]
+        kwargs = dict(options.get(name, {}))
+        if name == "pointcloud":
+            terms[name] = cls(skeleton, **kwargs)
+        else:
+            if cameras is None or len(cameras) == 0:
+                raise ValueError(f"likelihood {name!r} needs cameras")
+            terms[name] = cls(skeleton, cameras, **kwargs)
+    if len(terms) == 1 and next(iter(weights.values())) == 1.0:
+        return next(iter(terms.values()))
+    return L.ProductLikelihood(terms, weights=weights)
+
+
+def body_partition(skeleton) -> list[list[int]]:
+    """DOF index groups for partitioned sampling: the torso first, then one group per limb.
+
+    The torso is the chain from the root towards the highest joint in the rest pose (pelvis, spine, neck,
+    head) with the root's DOFs; each subtree hanging off that chain (legs, arms) is a limb. Fontmarty §2.3.
+    """
+    names, parents = skeleton.joint_names, skeleton.parents
+    rest = skeleton.fk(torch.zeros(len(skeleton.dof_names), dtype=torch.float64))
+    children: dict[int, list[int]] = {j: [] for j in range(len(names))}
+    for j, p in enumerate(parents):
+        if p >= 0:
+            children[p].append(j)
+
+    def subtree(j):
+        out = [j]
+        for c in children[j]:
+            out += subtree(c)
+        return out
+
+    torso, limbs = [], []
+    j = parents.index(-1)
+    while True:
+        torso.append(j)
+        if not children[j]:
+            break
+        # continue along the child whose subtree reaches highest (the head); the others are limbs
+        best = max(children[j], key=lambda c: float(rest[subtree(c), 2].max()))
+        limbs += [subtree(c) for c in children[j] if c != best]
+        j = best
+    joint_dofs = _joint_dofs(skeleton)
+    groups = [[d for j in torso for d in joint_dofs[j]]]
+    groups += [[d for j in limb for d in joint_dofs[j]] for limb in limbs]
+    return [g for g in groups if g]
+
+
+def _joint_dofs(skeleton) -> list[list[int]]:
+    """DOF indices moved by each body joint's own run (the DOFs between it and its parent joint)."""
+    chain = skeleton.chain
+    dof_index = {n: i for i, n in enumerate(skeleton.dof_names)}
+    owner = {}
+    body = set(skeleton.joint_names)
+
+    def visit(frame, current):
+        name = frame.name.strip("\n")
+        pending = current + ([frame.joint.name] if frame.joint.joint_type != "fixed" else [])
+        if name in body:
+            owner[name] = pending
+            pending = []
+        for child in frame.children:
+            visit(child, pending)
+
+    visit(chain._root, [])
+    return [[dof_index[d] for d in owner.get(n, []) if d in dof_index] for n in skeleton.joint_names]
+
+
+@dataclass
+class TrackResult:
+    """What :meth:`Tracker.track` returns.
+
+    Attributes:
+        dof_names: (D) names of the columns of ``angles``.
+        fps: frame rate (Hz) of the sequence.
+        angles: (T, D) float64 MMSE estimates (rad / m), CPU.
+        map_angles: (T, D) highest-weight particle of each frame.
+        ess: (T,) effective sample size after weighting (Brubaker eq. 18).
+        log_evidence: log p(z_{1:T}) estimate (see the filter's docstring for what the APF reports).
+        failed: (T,) bool, frames where every weight was -inf/NaN (predicted particles kept).
+        stats: filter-specific per-frame statistics (HMC acceptance, APF betas, ...).
+        seconds: wall-clock time of the filtering loop.
+        likelihood_evaluations: per frame.
+    """
+
+    dof_names: list[str]
+    fps: float
+    angles: torch.Tensor
+    map_angles: torch.Tensor
+    ess: torch.Tensor
+    log_evidence: float
+    failed: torch.Tensor
+    stats: dict = field(default_factory=dict)
+    seconds: float = 0.0
+    likelihood_evaluations: int = 0
+
+    def save_csv(self, path: str | os.PathLike) -> None:
+        """Write the estimates as mocap CSV (DESIGN.md: ``time`` column then one column per DOF)."""
+        times = torch.arange(self.angles.shape[0], dtype=torch.float64) / self.fps
+        write_mocap_csv(path, self.dof_names, self.angles.numpy(), times=times.numpy())
+
+
+def _to_device(obs, device, dtype):
+    """Move a Frame (and its containers' tensors) to ``device``; other objects pass through."""
+    if isinstance(obs, torch.Tensor):
+        return obs.to(device=device, dtype=dtype if obs.is_floating_point() else obs.dtype)
+    if dataclasses.is_dataclass(obs) and not isinstance(obs, type):
+        changes = {}
+        for f in dataclasses.fields(obs):
+            if f.name.startswith("_"):
+                continue
+            v = getattr(obs, f.name)
+            if isinstance(v, torch.Tensor) or (dataclasses.is_dataclass(v) and not isinstance(v, type)):
+                changes[f.name] = _to_device(v, device, dtype)
+        return dataclasses.replace(obs, **changes) if changes else obs
+    return obs
+
+
+class Tracker(nn.Module):
+    """Articulated tracker assembled from a skeleton, cameras, a likelihood, a motion prior and a filter.
+
+    Args:
+        skeleton: :class:`~torchpf.Skeleton` (or a URDF path).
+        cameras: a :class:`~torchpf.camera.CameraRig` / list of cameras (image likelihoods need them).
+        likelihood: a module, a name, a list of names or ``{name: weight}`` (see :func:`make_likelihood`).
+        likelihood_options: ``{name: {keyword: value}}`` for the named likelihoods.
+        dynamics: a motion prior object or a registered name (see :func:`make_dynamics`).
+        dynamics_options: keywords of the named prior's factory (e.g. ``{"scale": 0.5}``).
+        proposal: optional importance distribution (``sample(state, obs, generator) -> (x, log_q)``).
+        filter: one of :data:`FILTERS`.
+        n_particles: likelihood evaluations per frame (the equal-budget N of Fontmarty's protocol).
+        filter_options: extra keywords of the filter (e.g. ``{"betas": "adaptive"}`` for the APF).
+        init_spread: std of the initial particles around the initial pose: a float (rad and m alike) or a
+            (D,) tensor.
+        device, dtype: where and in which precision to run (observations are moved per frame).
+        progress: tqdm progress bar.
+    """
+
+    def __init__(
+        self,
+        skeleton,
+        cameras=None,
+        *,
+        likelihood: Any = "silhouette",
+        likelihood_options: Mapping[str, Mapping] | None = None,
+        dynamics: Any = "random_walk",
+        dynamics_options: Mapping[str, Any] | None = None,
+        proposal: Any = None,
+        filter: str = "apf",
+        n_particles: int = 500,
+        filter_options: Mapping[str, Any] | None = None,
+        init_spread: float | torch.Tensor = 0.02,
+        device: str | torch.device | None = None,
+        dtype: torch.dtype = torch.float32,
+        progress: bool = True,
+    ):
+        super().__init__()
+        if not isinstance(skeleton, nn.Module):
+            from torchpf.skeleton import Skeleton
+
+            skeleton = Skeleton.from_urdf(skeleton)
+        if filter not in FILTERS:
+            raise ValueError(f"unknown filter {filter!r}; choose from {FILTERS}")
+        if n_particles < 1:
+            raise ValueError(f"n_particles must be >= 1, got {n_particles}")
+        self.skeleton = skeleton
+        self.cameras = cameras
+        self.likelihood = make_likelihood(skeleton, cameras, likelihood, likelihood_options)
+        if isinstance(dynamics, str):
+            dynamics = make_dynamics(dynamics, skeleton, **dict(dynamics_options or {}))
+        self.dynamics = dynamics
+        self.proposal = proposal
+        self.filter_name = "sir" if filter == "condensation" else filter
+        self.n_particles = int(n_particles)
+        self.filter_options = dict(filter_options or {})
+        self.init_spread = init_spread
+        self.device = torch.device(device) if device is not None else torch.device("cpu")
+        self.dtype = dtype
+        self.progress = progress
+        self.filter = self._build_filter()
+        self.to(self.device)
+
+    @classmethod
+    def from_config(
+        cls, config: Mapping[str, Any] | str | os.PathLike, skeleton=None, cameras=None, **overrides
+    ):
+        """Build from a dict or a YAML file with the constructor's keywords (``skeleton`` may be a path).
+
+        Example YAML::
+
+            skeleton: skeleton.urdf
+            likelihood: {silhouette: 1.0, dual_silhouette: 0.5}
+            dynamics: random_walk
+            filter: apf
+            n_particles: 600
+            filter_options: {betas: adaptive}
+        """
+        if not isinstance(config, Mapping):
+            import yaml
+
+            path = os.fspath(config)
+            try:
+                with open(path, encoding="utf-8") as f:
+                    loaded = yaml.safe_load(f) or {}
+            except yaml.YAMLError as e:
+                raise ValueError(f"{path}: invalid YAML ({e})") from None
+            if not isinstance(loaded, Mapping):
+                raise ValueError(f"{path}: a tracker config must be a mapping of keywords")
+            config = loaded
+        kwargs = {**config, **overrides}
+        skeleton = kwargs.pop("skeleton", None) if skeleton is None else skeleton
+        if skeleton is None:
+            raise ValueError("the config names no skeleton and none was given")
+        kwargs.pop("cameras", None)
+        if "dtype" in kwargs and isinstance(kwargs["dtype"], str):
+            kwargs["dtype"] = getattr(torch, kwargs["dtype"])
+        return cls(skeleton, cameras, **kwargs)
+
+    # ------------------------------------------------------------------ assembly
+    def _build_filter(self):
+        opts = dict(self.filter_options)
+        n, name = self.n_particles, self.filter_name
+        common = {
+            "progress": self.progress,
+            **{k: opts.pop(k) for k in ("resampler", "ess_threshold") if k in opts},
+        }
+        if name in ("sir", "qrs"):
+            return ParticleFilter(
+                self.dynamics,
+                self.likelihood,
+                self.proposal,
+                n_particles=n,
+                sampling="qrs" if name == "qrs" else "mc",
+                **common,
+                **opts,
+            )
+        if name in ("partitioned", "partitioned_qrs"):
+            groups = opts.pop("groups", None) or body_partition(self.skeleton)
+            per_stage = max(1, n // len(groups))
+            return PartitionedParticleFilter(
+                self.dynamics,
+                [self.likelihood] * len(groups),
+                groups,
+                n_particles=per_stage,
+                sampling="qrs" if name == "partitioned_qrs" else "mc",
+                **common,
+                **opts,
+            )
+        if name == "apf":
+            betas = opts.get("betas", (0.1, 0.4, 1.0))
+            layers = opts.get("n_layers") or (3 if isinstance(betas, str) else len(betas))
+            if "diffusion_std" not in opts and getattr(self.dynamics, "std", None) is None:
+                opts["diffusion_std"] = getattr(self.dynamics, "sigma", None)
+            return AnnealedParticleFilter(
+                self.dynamics,
+                self.likelihood,
+                self.proposal,
+                n_particles=max(1, n // layers),
+                **common,
+                **opts,
+            )
+        return MCMCParticleFilter(
+            self.dynamics, self.likelihood, self.proposal, n_particles=n, **common, **opts
+        )
+
+    # ------------------------------------------------------------------ running
+    def initial_particles(self, pose: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
+        """(N, D) initial particles: ``pose`` (D,) plus N(0, init_spread^2) noise, clamped to the limits.
+
+        N is the filter's particle count (per layer / stage for the APF / partitioned filter).
+        """
+        pose = torch.as_tensor(pose, dtype=self.dtype).to(self.device)
+        n = self.filter.n_particles
+        spread = torch.as_tensor(self.init_spread, dtype=self.dtype, device=self.device)
+        noise = torch.randn(n, pose.shape[-1], generator=generator, dtype=self.dtype)
+        x0 = pose + noise.to(self.device) * spread
+        x0[0] = pose  # the given pose itself is one of the hypotheses
+        return self.skeleton.clamp(x0)
+
+    def track(
+        self,
+        sequence,
+        *,
+        init: torch.Tensor | None = None,
+        generator: torch.Generator | None = None,
+        seed: int | None = 0,
+        fps: float | None = None,
+    ) -> TrackResult:
+        """Track a sequence.
+
+        Args:
+            sequence: a sequence directory (path), a :class:`~torchpf.synth.SequenceData`, or a list of
+                per-frame observations (:class:`~torchpf.observations.Frame` or whatever the likelihood
+                takes).
+            init: (D,) initial pose; default the sequence's first ground-truth frame.
+            generator: random generator (on the CPU); default one seeded with ``seed``.
+            fps: frame rate of the result (default: from the sequence's times, else 30).
+
+        Returns:
+            :class:`TrackResult`.
+        """
+        from torchpf.synth import SequenceData, read_sequence
+
+        if isinstance(sequence, str | os.PathLike):
+            sequence = read_sequence(sequence)
+        if isinstance(sequence, SequenceData):
+            frames = [sequence.frame(t) for t in range(len(sequence))]
+            if init is None and sequence.truth is not None:
+                if sequence.dof_names is not None and list(sequence.dof_names) != list(
+                    self.skeleton.dof_names
+                ):
+                    raise ValueError("the sequence's truth.csv columns do not match the skeleton's DOF names")
+                init = sequence.truth[0]
+            if fps is None and sequence.times is not None and len(sequence.times) > 1:
+                fps = 1.0 / float(sequence.times[1] - sequence.times[0])
+        else:
+            frames = list(sequence)
+        if not frames:
+            raise ValueError("the sequence has no frames")
+        if init is None:
+            raise ValueError("no initial pose: the sequence has no ground truth; pass init=(D,) pose")
+        init = torch.as_tensor(init, dtype=torch.float64)
+        if init.shape != (len(self.skeleton.dof_names),):
+            raise ValueError(
+                f"init must be a ({len(self.skeleton.dof_names)},) pose, got {tuple(init.shape)}"
+            )
+        if generator is None:
+            generator = torch.Generator().manual_seed(0 if seed is None else int(seed))
+        x0 = self.initial_particles(init, generator)
+        observations = [_to_device(f, self.device, self.dtype) for f in frames]
+        t0 = time.perf_counter()
+        track = self.filter.run(observations, x0, generator=generator)  # no_grad inside, but for HMC moves
+        seconds = time.perf_counter() - t0
+        return TrackResult(
+            dof_names=list(self.skeleton.dof_names),
+            fps=float(fps or 30.0),
+            angles=track.estimates.detach().to(torch.float64).cpu(),
+            map_angles=track.map_estimates.detach().to(torch.float64).cpu(),
+            ess=track.ess.detach().cpu(),
+            log_evidence=float(track.log_evidence),
+            failed=track.failed.detach().cpu(),
+            stats={k: v.detach().cpu() if isinstance(v, torch.Tensor) else v for k, v in track.stats.items()},
+            seconds=seconds,
+            likelihood_evaluations=self.n_particles,
+        )
