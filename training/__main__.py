@@ -3,11 +3,16 @@
 Commands::
 
     python -m training convert FILE.bvh --scale S --out-dir DIR    # -> DIR/skeleton.urdf + DIR/FILE.csv
+    python -m training fit --action walk --skeleton S.urdf --out walk.npz DATA/*.csv
+    python -m training inspect walk.npz --out DIR                  # -> DIR/synchronisation.png, ...
 
 ``convert`` turns a BVH file into a torchpf skeleton (URDF, z up, metres) and a mocap CSV of its angle
-tracks in the skeleton's ``dof_names`` order (see :mod:`training.mocap`). Bad input ends with a one-line
-``error:`` message on stderr and exit status 2. Each command is one subparser with its own ``--help``;
-more commands (``fit``) plug in the same way through :func:`build_parser`.
+tracks in the skeleton's ``dof_names`` order (see :mod:`training.mocap`). ``fit`` learns an action model
+(Rius eq. 1-3, :mod:`training.fit`) from performances of one action and saves it as ``.npz``
+(:mod:`priors.action`); ``inspect`` prints its summary and saves the plots of Rius Fig. 1
+(:mod:`training.plots`). Bad input ends with a one-line ``error:`` message on stderr and exit status 2.
+Each command is one subparser with its own ``--help``; more commands plug in the same way through
+:func:`build_parser`.
 """
 
 from __future__ import annotations
@@ -51,6 +56,87 @@ def _convert(args: argparse.Namespace) -> int:
     return 0
 
 
+def _components(text: str) -> int | float:
+    """``--components``: an int >= 1 (count) or a float in (0, 1) (fraction of variance)."""
+    try:
+        value: int | float = int(text)
+    except ValueError:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if isinstance(value, int) and value < 1 or isinstance(value, float) and not 0.0 < value < 1.0:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 1 or a fraction in (0, 1), got {text!r}")
+    return value
+
+
+def _fit(args: argparse.Namespace) -> int:
+    from tqdm.auto import tqdm
+
+    from torchpf.skeleton import Skeleton
+    from training.fit import HAND_PATTERNS, ActionModelFitter
+    from training.mocap import load_csv
+
+    if args.out.suffix != ".npz":
+        raise ValueError(f"--out must name a .npz file, got {str(args.out)!r}")
+    dof_names = Skeleton.from_urdf(args.skeleton).dof_names if args.skeleton else None
+    motions = []
+    for path in tqdm(args.files, desc="reading", unit="file", disable=args.quiet or len(args.files) < 2):
+        motion = load_csv(
+            path, dof_names=dof_names
+        )  # a CSV of another skeleton fails, naming file and column
+        if args.skip_first:
+            motion = motion[args.skip_first :]
+        motions.append(motion)
+    fitter = ActionModelFitter(
+        n_components=args.components,
+        action=args.action,
+        fps=args.fps,
+        cyclic=args.cyclic,
+        n_postures=args.postures,
+        exclude_root=args.exclude_root,
+        exclude=HAND_PATTERNS if args.exclude is None else tuple(args.exclude),
+        max_iter=args.max_iter,
+        n_sigma=args.n_sigma,
+        alpha=args.alpha,
+        validate=args.validate,
+        progress=not args.quiet,
+    ).fit(motions)
+    model = fitter.model_
+    model.save(args.out)
+    rate = fitter.train_acceptance_  # how often eq. 6 accepts the training frames themselves
+    print(
+        f"wrote {args.out}: action {args.action!r} from {len(motions)} performances, "
+        f"{len(model.posture_dofs)} posture DOFs -> D={model.n_components} "
+        f"({100 * float(model.explained_variance_ratio.sum()):.1f}% variance), "
+        f"K={model.n_postures} {'cyclic' if model.cyclic else 'acyclic'} mean postures at {model.fps:g} fps, "
+        f"synchronisation {'converged' if fitter.converged_ else 'stopped'} after {fitter.n_iter_} "
+        f"iterations, "
+        f"alpha={model.alpha:.3g}; accepts {100 * rate:.1f}% of the training frames"
+    )
+    if fitter.validation_acceptance_ is not None:
+        held = fitter.validation_acceptance_
+        print(
+            f"leave-one-performance-out: accepts {100 * held.mean():.1f}% of the left-out frames "
+            f"(worst {100 * held.min():.1f}%); if far below the training rate, lower --components"
+        )
+    return 0
+
+
+def _inspect(args: argparse.Namespace) -> int:
+    from priors.action import ActionModel
+    from training.plots import describe, plot_explained_variance, plot_synchronisation
+
+    model = ActionModel.load(args.model)
+    print(describe(model))
+    paths = [
+        plot_synchronisation(model, args.out, n_dims=args.dims),
+        plot_explained_variance(model, args.out),
+    ]
+    print("wrote " + ", ".join(str(p) for p in paths))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The ``python -m training`` parser; each subcommand sets ``func(args) -> exit status``."""
     parser = argparse.ArgumentParser(prog=PROG, description="Mocap conversion and action-model training.")
@@ -71,6 +157,80 @@ def build_parser() -> argparse.ArgumentParser:
     )
     convert.add_argument("--out-dir", required=True, metavar="DIR", help="output folder (created if missing)")
     convert.set_defaults(func=_convert)
+
+    fit = commands.add_parser(
+        "fit",
+        help="mocap CSV performances -> action model .npz",
+        description="Learn an action model (aSpace PCA, DTW-synchronised mean performance and per-posture "
+        "std, "
+        "constant-velocity sigma_phi and alpha; Rius et al. eq. 1-3) from performances of one action, "
+        "one mocap CSV each, and save it as .npz.",
+    )
+    fit.add_argument("files", nargs="+", metavar="FILE.csv", help="performances of the action (mocap CSV)")
+    fit.add_argument("--action", required=True, help="action name stored in the model, e.g. walk")
+    fit.add_argument("--out", required=True, type=Path, metavar="MODEL.npz", help="output file")
+    fit.add_argument(
+        "--skeleton",
+        metavar="S.urdf",
+        help="skeleton the CSVs must match (its dof_names are the pose layout)",
+    )
+    fit.add_argument(
+        "--components",
+        type=_components,
+        default=13,
+        metavar="D",
+        help="aSpace dimensions: a count (default 13, as Rius) or a variance fraction such as 0.9",
+    )
+    fit.add_argument("--fps", type=_positive_float, help="model frame rate; default: the files' rate")
+    fit.add_argument(
+        "--cyclic",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="periodic action (walk) or not (one bend); default: detected from the data",
+    )
+    fit.add_argument("--postures", type=int, metavar="K", help="mean-performance length (default: from data)")
+    fit.add_argument(
+        "--exclude-root",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="leave the root's translation and orientation out of the posture (default: yes)",
+    )
+    fit.add_argument(
+        "--exclude",
+        action="append",
+        metavar="REGEX",
+        help="leave DOFs matching REGEX out of the posture (repeatable; replaces the default "
+        "hand|finger|thumb)",
+    )
+    fit.add_argument("--n-sigma", type=_positive_float, default=2.0, help="acceptance width in sigma (2)")
+    fit.add_argument("--alpha", type=float, help="fix the velocity smoothing alpha instead of fitting it")
+    fit.add_argument("--max-iter", type=int, default=30, help="most synchronisation iterations (30)")
+    fit.add_argument(
+        "--skip-first",
+        type=int,
+        default=0,
+        metavar="N",
+        help="drop the first N frames of every file (CMU conversions: 1, a rest pose)",
+    )
+    fit.add_argument(
+        "--validate",
+        action="store_true",
+        help="also measure, for each performance, how often a model fitted without it accepts its frames",
+    )
+    fit.add_argument("--quiet", action="store_true", help="no progress bars")
+    fit.set_defaults(func=_fit)
+
+    inspect = commands.add_parser(
+        "inspect",
+        help="summary and plots of an action model",
+        description="Print a summary of an action model and save the plots of Rius Fig. 1 (first aSpace "
+        "dimensions of the training performances before and after synchronisation, mean +- 3 sigma) and the "
+        "explained variance to DIR.",
+    )
+    inspect.add_argument("model", metavar="MODEL.npz", help="action model written by 'fit'")
+    inspect.add_argument("--out", required=True, metavar="DIR", help="folder for the PNG files")
+    inspect.add_argument("--dims", type=int, default=4, help="aSpace dimensions to plot (4)")
+    inspect.set_defaults(func=_inspect)
     return parser
 
 

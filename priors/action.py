@@ -1,0 +1,680 @@
+"""Action models Γ = (Ω, ĝ, σ) and action-constrained dynamics (Rius et al., eq. 1-6).
+
+An *action model* says whether a pose is one that occurs while performing a given action (walking,
+bending, ...). It is learned from mocap by :mod:`training.fit` and used in the prediction step of a particle
+filter to throw away predicted poses that the action never visits, so that fewer particles are wasted.
+
+**The model** (Rius eq. 1): ``Γ = (Ω, ĝ, σ)`` plus the dynamics parameters σ_φ, α and the matching spread Δ.
+
+* Ω, the *aSpace*: a PCA of the action's postures (Brubaker eq. 14, ``ψ ≈ μ + Σ_i u_i c_i``). A pose vector
+  θ ``(..., D_full)`` in the skeleton's ``dof_names`` order is reduced to its *posture* DOFs ``(..., P)``
+  (root and glitchy hand channels are left out by default, see :mod:`training.fit`) and projected onto
+  ``D`` principal components: :meth:`ActionModel.project` ``-> (..., D)``.
+* ĝ ``(K, D)``: the synchronised mean performance, ``K`` postures in aSpace coordinates (one gait cycle for
+  a cyclic action such as walking, the whole performance otherwise).
+* σ ``(K, D)``: the standard deviation of the synchronised training postures around each ĝ_k.
+* Δ ``(D,)``: the spread of a posture around the mean posture it matches (RMS over the training frames of
+  ``φ̃ - ĝ_{k(φ)}``, ``k(φ)`` the DTW match).
+* σ_φ ``(D_full,)`` and α: the diffusion and velocity smoothing of the constant-velocity prior (Rius eq. 3),
+  fitted on the training performances at the model's frame rate ``fps``.
+
+**Angle representation.** The aSpace coordinates are raw joint angles (radians, the paper's choice; sin/cos
+would double the dimension and bend straight lines of PCA). Angles are periodic, so a pose is first brought
+to the branch nearest the action's circular mean ``center`` of each angular posture DOF:
+``x = center + wrap(θ - center)``, ``wrap`` into ``[-π, π)``. This is a function of the pose alone (a particle
+has no history), it is exactly what the fitter used, and for every DOF that stays within ±π of its mean
+during the action it equals the unwrapped (continuous) angle. DOFs whose name ends in ``position`` are
+lengths (metres) and never wrapped.
+
+**Acceptance test** (Rius eq. 6), :meth:`ActionModel.accepts`: with ``φ̃ = project(θ)``,
+
+1. *match*: draw ``j`` from the Gaussian conditional ``p(j | φ̃) ∝ exp(-½ Σ_d ((φ̃_d - ĝ_{j,d}) / Δ_d)²)``,
+   i.e. the posterior over the mean posture under ``φ̃ = ĝ_j + η(Δ)`` with a uniform prior over ``j``;
+2. *accept* iff ``|φ̃_d - ĝ_{j,d}| < n_sigma · σ_{j,d}`` for every ``d = 1..D`` (``n_sigma = 2`` in the paper).
+
+The test is random through ``j``; :meth:`ActionModel.accept_probability` is its expectation
+``Σ_j p(j | φ̃) 1[φ̃ within n_sigma σ_j of ĝ_j]``. Only the projection is tested, as in the paper: how tight
+the filter is depends on ``D``.
+
+**Action-constrained dynamics** (Rius eq. 3-5), :class:`ActionConstrained`: predict with the constant-velocity
+prior (eq. 3, :class:`priors.motion.ConstantVelocity`), then redraw every prediction the action model rejects
+until it is accepted (eq. 6), at most ``max_tries`` times.
+
+**File format** (``.npz``, :meth:`ActionModel.save` / :meth:`ActionModel.load`; no pickles): a JSON string
+``metadata`` (``format``, ``version``, ``action``, ``dof_names``, ``posture_dofs``, ``angular``, ``fps``,
+``cyclic``, ``n_sigma``, ``alpha``, ``training``) and float64 arrays ``center (P,)``, ``pca_mean (P,)``,
+``components (D, P)``, ``explained_variance (D,)``, ``explained_variance_ratio (D,)``,
+``mean_performance (K, D)``, ``std (K, D)``, ``delta (D,)``, ``sigma_phi (D_full,)``, ``alpha ()``; optionally
+the training performances for plots: ``train_coords (M, D)`` (aSpace coordinates of all frames, concatenated),
+``train_lengths (R,)`` int (frames per performance) and ``train_phase (M,)`` int (matched posture per frame).
+
+Example::
+
+    from priors import ActionModel, ActionConstrained
+    model = ActionModel.load("walk.npz", dof_names=skel.dof_names)   # fails clearly on other DOF names
+    ok = model.accepts(theta, generator)                               # (..., N, D_full) -> (..., N) bool
+    pf = ParticleFilter(ActionConstrained(model), likelihood, n_particles=2000)
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+import zipfile
+import zlib
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from priors.motion import ConstantVelocity
+
+#: ``metadata["format"]`` of an action-model file.
+FORMAT = "torchpf-action-model"
+#: Current file-format version; files with a higher version are refused.
+FORMAT_VERSION = 1
+
+_REQUIRED = (
+    "center",
+    "pca_mean",
+    "components",
+    "explained_variance",
+    "explained_variance_ratio",
+    "mean_performance",
+    "std",
+    "delta",
+    "sigma_phi",
+)
+_TRAINING = ("train_coords", "train_lengths", "train_phase")
+
+
+class ActionModelFormatError(ValueError):
+    """An action-model file that cannot be used; the message starts with the file's path."""
+
+
+def is_angular(dof_name: str) -> bool:
+    """True for a revolute DOF (radians), False for a prismatic one: names ending in ``position`` (metres)."""
+    return not dof_name.lower().endswith("position")
+
+
+def wrap_angle(x: Tensor) -> Tensor:
+    """Wrap radians into ``[-π, π)``, elementwise."""
+    return torch.remainder(x + math.pi, 2.0 * math.pi) - math.pi
+
+
+def _f64(value, name: str, ndim: int) -> Tensor:
+    t = torch.as_tensor(np.asarray(value, dtype=np.float64) if not isinstance(value, Tensor) else value)
+    t = t.detach().to("cpu", torch.float64).clone()
+    if t.ndim != ndim:
+        raise ValueError(f"{name} must have {ndim} dimension(s), got shape {tuple(t.shape)}")
+    if not torch.isfinite(t).all():
+        raise ValueError(f"{name} must be finite")
+    return t
+
+
+class ActionModel(nn.Module):
+    """The action model Γ = (Ω, ĝ, σ) of Rius eq. 1 plus σ_φ, α, Δ (see the module docstring).
+
+    Usually built by :func:`training.fit_action_model` or read with :meth:`load`. All arrays are stored as
+    float64 buffers, so ``.to(device)`` moves the model; computations follow the input's dtype and device.
+
+    Args:
+        dof_names: ``(D_full,)`` the pose-vector layout the model applies to (a skeleton's ``dof_names``).
+        posture_dofs: ``(P,)`` the names of the DOFs that make up a posture (a subset of ``dof_names``).
+        center: ``(P,)`` branch centres of the posture DOFs (circular means, radians; see "Angle
+            representation" above).
+        pca_mean: ``(P,)`` PCA mean μ of the posture vectors.
+        components: ``(D, P)`` PCA directions ``u_i`` (orthonormal rows).
+        mean_performance: ``(K, D)`` ĝ, the synchronised mean performance in aSpace coordinates.
+        std: ``(K, D)`` σ_k, per-posture standard deviation (> 0).
+        delta: ``(D,)`` Δ, the matching spread (> 0).
+        sigma_phi: ``(D_full,)`` σ_φ, constant-velocity diffusion std per frame (radians / metres).
+        alpha: α in [0, 1], velocity smoothing of Rius eq. 3.
+        fps: frame rate (Hz) at which σ_φ and α apply.
+        action: action name, e.g. ``"walk"``.
+        cyclic: whether ĝ is one cycle of a periodic action (its last posture precedes its first).
+        n_sigma: acceptance half-width in units of σ (Rius: 2).
+        angular: ``(P,)`` which posture DOFs are angles (default: names not ending in ``position``).
+        explained_variance: ``(D,)`` PCA variances (rad²); ``explained_variance_ratio`` their fractions.
+        training: optional dict for plots: ``coords (M, D)``, ``lengths (R,)``, ``phase (M,)``, and JSON-able
+            ``info`` (performance names, fitter configuration).
+    """
+
+    def __init__(
+        self,
+        *,
+        dof_names: Sequence[str],
+        posture_dofs: Sequence[str],
+        center,
+        pca_mean,
+        components,
+        mean_performance,
+        std,
+        delta,
+        sigma_phi,
+        alpha: float,
+        fps: float,
+        action: str = "action",
+        cyclic: bool = False,
+        n_sigma: float = 2.0,
+        angular: Sequence[bool] | None = None,
+        explained_variance=None,
+        explained_variance_ratio=None,
+        training: Mapping[str, Any] | None = None,
+    ):
+        super().__init__()
+        self.dof_names = [str(n) for n in dof_names]
+        self.posture_dofs = [str(n) for n in posture_dofs]
+        if len(set(self.dof_names)) != len(self.dof_names):
+            raise ValueError("ActionModel: duplicate names in dof_names")
+        index = {n: i for i, n in enumerate(self.dof_names)}
+        missing = [n for n in self.posture_dofs if n not in index]
+        if missing:
+            raise ValueError(f"ActionModel: posture DOFs {missing} are not in dof_names")
+        if not self.posture_dofs or len(set(self.posture_dofs)) != len(self.posture_dofs):
+            raise ValueError("ActionModel: posture_dofs must be non-empty and without duplicates")
+        P, Dfull = len(self.posture_dofs), len(self.dof_names)
+
+        center = _f64(center, "center", 1)
+        pca_mean = _f64(pca_mean, "pca_mean", 1)
+        components = _f64(components, "components", 2)
+        g = _f64(mean_performance, "mean_performance", 2)
+        std = _f64(std, "std", 2)
+        delta = _f64(delta, "delta", 1)
+        sigma_phi = _f64(sigma_phi, "sigma_phi", 1)
+        D = components.shape[0]
+        K = g.shape[0]
+        expect = {
+            "center": (center, (P,)),
+            "pca_mean": (pca_mean, (P,)),
+            "components": (components, (D, P)),
+            "mean_performance": (g, (K, D)),
+            "std": (std, (K, D)),
+            "delta": (delta, (D,)),
+            "sigma_phi": (sigma_phi, (Dfull,)),
+        }
+        for name, (t, shape) in expect.items():
+            if tuple(t.shape) != shape:
+                raise ValueError(
+                    f"ActionModel: {name} has shape {tuple(t.shape)}, expected {shape} "
+                    f"(P={P} posture DOFs, D={D} components, K={K} postures, D_full={Dfull})"
+                )
+        if D < 1 or K < 1:
+            raise ValueError("ActionModel: needs at least one component and one mean posture")
+        if (std <= 0).any() or (delta <= 0).any() or (sigma_phi < 0).any():
+            raise ValueError("ActionModel: std and delta must be > 0 and sigma_phi >= 0")
+        if not 0.0 <= float(alpha) <= 1.0:
+            raise ValueError(f"ActionModel: alpha must be in [0, 1], got {alpha}")
+        if not (math.isfinite(float(fps)) and float(fps) > 0):
+            raise ValueError(f"ActionModel: fps must be > 0, got {fps}")
+        if not (math.isfinite(float(n_sigma)) and float(n_sigma) > 0):
+            raise ValueError(f"ActionModel: n_sigma must be > 0, got {n_sigma}")
+        if angular is None:
+            angular = [is_angular(n) for n in self.posture_dofs]
+        if len(angular) != P:
+            raise ValueError(f"ActionModel: angular has {len(angular)} entries, expected {P}")
+
+        self.action = str(action)
+        self.alpha = float(alpha)
+        self.fps = float(fps)
+        self.cyclic = bool(cyclic)
+        self.n_sigma = float(n_sigma)
+        self.register_buffer("posture_index", torch.tensor([index[n] for n in self.posture_dofs]))
+        self.register_buffer("angular", torch.tensor([bool(a) for a in angular]))
+        self.register_buffer("center", center)
+        self.register_buffer("pca_mean", pca_mean)
+        self.register_buffer("components", components)
+        self.register_buffer("mean_performance", g)
+        self.register_buffer("std", std)
+        self.register_buffer("delta", delta)
+        self.register_buffer("sigma_phi", sigma_phi)
+        ev = (
+            torch.zeros(D)
+            if explained_variance is None
+            else _f64(explained_variance, "explained_variance", 1)
+        )
+        evr = (
+            torch.zeros(D)
+            if explained_variance_ratio is None
+            else _f64(explained_variance_ratio, "explained_variance_ratio", 1)
+        )
+        self.register_buffer("explained_variance", ev.to(torch.float64))
+        self.register_buffer("explained_variance_ratio", evr.to(torch.float64))
+        self.training_data = _check_training(training, D, K)
+
+    # ------------------------------------------------------------------------------------------ sizes
+    @property
+    def n_components(self) -> int:
+        """D, the aSpace dimension."""
+        return self.components.shape[0]
+
+    @property
+    def n_postures(self) -> int:
+        """K, the number of postures of the mean performance."""
+        return self.mean_performance.shape[0]
+
+    # ------------------------------------------------------------------------------------------ aSpace
+    def postures(self, theta: Tensor) -> Tensor:
+        """Posture vectors on the action's angle branch: ``(..., D_full) -> (..., P)``.
+
+        ``x = center + wrap(θ_p - center)`` for angular DOFs, ``θ_p`` for the others.
+        """
+        self._check_theta(theta)
+        x = theta.index_select(-1, self.posture_index)
+        center = self.center.to(x)
+        return torch.where(self.angular, center + wrap_angle(x - center), x)
+
+    def project(self, theta: Tensor) -> Tensor:
+        """aSpace coordinates ``φ̃ = U (x - μ)`` of poses: ``(..., D_full) -> (..., D)`` (radians).
+
+        Batched over any leading dims; dtype and device follow ``theta``.
+        """
+        x = self.postures(theta)
+        return (x - self.pca_mean.to(x)) @ self.components.to(x).transpose(0, 1)
+
+    def forward(self, theta: Tensor) -> Tensor:
+        """Same as :meth:`project`."""
+        return self.project(theta)
+
+    def reconstruct(self, coords: Tensor) -> Tensor:
+        """Posture from aSpace coordinates, Brubaker eq. 14 ``μ + Σ_i u_i c_i``: ``(..., D) -> (..., P)``."""
+        return self.pca_mean.to(coords) + coords @ self.components.to(coords)
+
+    def pose(self, coords: Tensor, base: Tensor) -> Tensor:
+        """Full poses: ``base (..., D_full)`` with the posture DOFs replaced by ``reconstruct(coords)``."""
+        self._check_theta(base)
+        posture = self.reconstruct(coords.to(base))
+        index = self.posture_index.expand(*posture.shape[:-1], -1)
+        return base.scatter(-1, index, posture)
+
+    # ------------------------------------------------------------------------------------------ eq. 6
+    def _match(self, coords: Tensor) -> tuple[Tensor, Tensor]:
+        """``log p(j | φ̃)`` ``(..., K)`` and ``within`` ``(..., K)`` bool for aSpace coords ``(..., D)``."""
+        g = self.mean_performance.to(coords)
+        diff = coords.unsqueeze(-2) - g  # (..., K, D)
+        z = diff / self.delta.to(coords)
+        logits = -0.5 * z.square().sum(-1)  # uniform prior over the K postures
+        log_p = logits - torch.logsumexp(logits, -1, keepdim=True)
+        within = (diff.abs() < self.n_sigma * self.std.to(coords)).all(-1)
+        return log_p, within
+
+    def match_probability(self, theta: Tensor) -> Tensor:
+        """``p(j | φ̃)``, the Gaussian conditional of eq. 6: ``(..., D_full) -> (..., K)``."""
+        log_p, _ = self._match(self.project(theta))
+        return log_p.exp()
+
+    def accept_probability(self, theta: Tensor) -> Tensor:
+        """P(:meth:`accepts` says yes) ``= Σ_j p(j | φ̃) 1[|φ̃ - ĝ_j| < n_sigma σ_j]``, ``(...)``."""
+        log_p, within = self._match(self.project(theta))
+        return (log_p.exp() * within).sum(-1)
+
+    def accept_probability_aspace(self, coords: Tensor) -> Tensor:
+        """:meth:`accept_probability` for aSpace coordinates ``(..., D) -> (...)`` (e.g. training frames)."""
+        log_p, within = self._match(coords)
+        return (log_p.exp() * within).sum(-1)
+
+    def accepts(self, theta: Tensor, generator: torch.Generator | None = None) -> Tensor:
+        """Rius eq. 6: ``p(φ_t | Γ) ∈ {0, 1}`` per pose, ``(..., D_full) -> (...)`` bool.
+
+        Draws the matched mean posture ``j ~ p(j | φ̃)`` (one uniform per pose, inverse CDF) and accepts
+        when ``|φ̃_d - ĝ_{j,d}| < n_sigma σ_{j,d}`` for all ``d``. ``generator`` must live on ``theta``'s
+        device.
+        """
+        log_p, within = self._match(self.project(theta))
+        cdf = torch.cumsum(log_p.exp(), -1)
+        u = torch.rand(cdf.shape[:-1] + (1,), generator=generator, dtype=cdf.dtype, device=cdf.device)
+        j = torch.searchsorted(cdf.contiguous(), (u * cdf[..., -1:]).contiguous()).clamp_max(
+            cdf.shape[-1] - 1
+        )
+        return within.gather(-1, j).squeeze(-1)
+
+    def _check_theta(self, theta: Tensor) -> None:
+        if theta.ndim < 1 or theta.shape[-1] != len(self.dof_names):
+            raise ValueError(
+                f"ActionModel({self.action!r}) expects poses (..., {len(self.dof_names)}) in its dof_names "
+                f"order, got shape {tuple(theta.shape)}"
+            )
+
+    # ------------------------------------------------------------------------------------------ DOF order
+    def for_dof_names(self, dof_names: Sequence[str]) -> ActionModel:
+        """This model for pose vectors in another order of the same DOFs (``self`` if the order is equal).
+
+        Raises:
+            ValueError: ``dof_names`` is not a permutation of the model's DOF names (names what is missing
+                and what is extra).
+        """
+        names = [str(n) for n in dof_names]
+        if names == self.dof_names:
+            return self
+        _check_same_dofs(self.dof_names, names, f"action model {self.action!r}")
+        perm = torch.tensor([self.dof_names.index(n) for n in names])
+        return ActionModel(**{**self._init_kwargs(), "dof_names": names, "sigma_phi": self.sigma_phi[perm]})
+
+    def _init_kwargs(self) -> dict[str, Any]:
+        return dict(
+            dof_names=self.dof_names,
+            posture_dofs=self.posture_dofs,
+            center=self.center,
+            pca_mean=self.pca_mean,
+            components=self.components,
+            mean_performance=self.mean_performance,
+            std=self.std,
+            delta=self.delta,
+            sigma_phi=self.sigma_phi,
+            alpha=self.alpha,
+            fps=self.fps,
+            action=self.action,
+            cyclic=self.cyclic,
+            n_sigma=self.n_sigma,
+            angular=self.angular.tolist(),
+            explained_variance=self.explained_variance,
+            explained_variance_ratio=self.explained_variance_ratio,
+            training=self.training_data,
+        )
+
+    # ------------------------------------------------------------------------------------------ files
+    def save(self, path: str | os.PathLike) -> None:
+        """Write the model as ``.npz`` (see the module docstring), atomically (temp file + os.replace)."""
+        meta = {
+            "format": FORMAT,
+            "version": FORMAT_VERSION,
+            "action": self.action,
+            "dof_names": self.dof_names,
+            "posture_dofs": self.posture_dofs,
+            "angular": [bool(a) for a in self.angular.tolist()],
+            "fps": self.fps,
+            "cyclic": self.cyclic,
+            "n_sigma": self.n_sigma,
+            "alpha": self.alpha,
+            "training": (self.training_data or {}).get("info", {}),
+        }
+        arrays = {name: getattr(self, name).detach().cpu().numpy() for name in _REQUIRED}
+        arrays["alpha"] = np.array(self.alpha)
+        if self.training_data is not None:
+            arrays["train_coords"] = self.training_data["coords"].numpy()
+            arrays["train_lengths"] = self.training_data["lengths"].numpy()
+            arrays["train_phase"] = self.training_data["phase"].numpy()
+        _savez_atomic(path, metadata=np.array(json.dumps(meta, default=_json_default)), **arrays)
+
+    @classmethod
+    def load(cls, path: str | os.PathLike, dof_names: Sequence[str] | None = None) -> ActionModel:
+        """Read a model written by :meth:`save`.
+
+        Args:
+            path: the ``.npz`` file.
+            dof_names: if given, the pose layout the caller will use (e.g. ``skel.dof_names``): the model
+                is reordered to it, and a model trained on other DOFs is refused.
+
+        Raises:
+            FileNotFoundError: no such file.
+            ActionModelFormatError: not an action-model file, a newer format version, missing or malformed
+                arrays; the message names the file.
+            ValueError: ``dof_names`` differs from the model's DOF names (the message lists the differences).
+        """
+        path = os.fspath(path)
+        if not os.path.isfile(path):
+            raise FileNotFoundError(f"action model file not found: {path}")
+
+        def bad(reason: str) -> ActionModelFormatError:
+            return ActionModelFormatError(f"{path}: {reason}")
+
+        try:
+            with np.load(path, allow_pickle=False) as npz:
+                data = {key: npz[key] for key in npz.files}
+        except (zipfile.BadZipFile, zlib.error, ValueError, EOFError, OSError, KeyError) as e:
+            raise bad(f"not a readable action-model .npz file ({type(e).__name__}: {e})") from None
+        if not isinstance(data, dict) or "metadata" not in data:
+            raise bad("not an action-model file (no 'metadata' entry)")
+        try:
+            meta = json.loads(str(data["metadata"]))
+        except (ValueError, TypeError) as e:
+            raise bad(f"metadata is not valid JSON ({e})") from None
+        if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+            raise bad(f"not an action-model file (metadata format is not {FORMAT!r})")
+        version = meta.get("version")
+        if not isinstance(version, int) or version < 1:
+            raise bad(f"bad format version {version!r}")
+        if version > FORMAT_VERSION:
+            raise bad(
+                f"format version {version} is newer than this torchpf reads ({FORMAT_VERSION}); upgrade"
+            )
+        absent = [k for k in (*_REQUIRED, "alpha") if k not in data]
+        absent += [k for k in ("dof_names", "posture_dofs", "fps") if k not in meta]
+        if absent:
+            raise bad(f"missing entries {absent}")
+        training = None
+        if all(k in data for k in _TRAINING):
+            training = {
+                "coords": data["train_coords"],
+                "lengths": data["train_lengths"],
+                "phase": data["train_phase"],
+                "info": meta.get("training", {}),
+            }
+        try:
+            model = cls(
+                dof_names=meta["dof_names"],
+                posture_dofs=meta["posture_dofs"],
+                angular=meta.get("angular"),
+                center=data["center"],
+                pca_mean=data["pca_mean"],
+                components=data["components"],
+                mean_performance=data["mean_performance"],
+                std=data["std"],
+                delta=data["delta"],
+                sigma_phi=data["sigma_phi"],
+                alpha=float(data["alpha"]),
+                fps=float(meta["fps"]),
+                action=meta.get("action", "action"),
+                cyclic=bool(meta.get("cyclic", False)),
+                n_sigma=float(meta.get("n_sigma", 2.0)),
+                explained_variance=data["explained_variance"],
+                explained_variance_ratio=data["explained_variance_ratio"],
+                training=training,
+            )
+        except (ValueError, TypeError) as e:
+            raise bad(" ".join(str(e).split())) from None
+        if dof_names is not None:
+            try:
+                model = model.for_dof_names(dof_names)
+            except ValueError as e:
+                raise ValueError(f"{path}: {e}") from None
+        return model
+
+    def extra_repr(self) -> str:
+        return (
+            f"action={self.action!r}, D_full={len(self.dof_names)}, P={len(self.posture_dofs)}, "
+            f"D={self.n_components}, K={self.n_postures}, cyclic={self.cyclic}, fps={self.fps:g}, "
+            f"alpha={self.alpha:.3g}, n_sigma={self.n_sigma:g}"
+        )
+
+
+def _check_same_dofs(have: Sequence[str], want: Sequence[str], what: str) -> None:
+    missing = [n for n in want if n not in set(have)]
+    extra = [n for n in have if n not in set(want)]
+    if missing or extra or len(want) != len(have):
+
+        def short(names):
+            return f"{names[:5]}{' ...' if len(names) > 5 else ''} ({len(names)})"
+
+        raise ValueError(
+            f"{what} was trained on other DOFs: the pose vector has {short(missing)} that the model lacks, "
+            f"and the model has {short(extra)} that the pose vector lacks"
+        )
+
+
+def _check_training(training: Mapping[str, Any] | None, D: int, K: int) -> dict[str, Any] | None:
+    if training is None:
+        return None
+    coords = _f64(training["coords"], "training coords", 2)
+    lengths = torch.as_tensor(np.asarray(training["lengths"]), dtype=torch.int64)
+    phase = torch.as_tensor(np.asarray(training["phase"]), dtype=torch.int64)
+    if coords.shape[1] != D or lengths.ndim != 1 or phase.shape != (coords.shape[0],):
+        raise ValueError("training data: coords (M, D), lengths (R,), phase (M,) do not fit together")
+    if int(lengths.sum()) != coords.shape[0] or (lengths < 1).any() or ((phase < 0) | (phase >= K)).any():
+        raise ValueError("training data: lengths must sum to M and phases lie in [0, K)")
+    return {"coords": coords, "lengths": lengths, "phase": phase, "info": dict(training.get("info", {}))}
+
+
+def _savez_atomic(path: str | os.PathLike, **arrays) -> None:
+    """``np.savez`` to a temporary file in the target folder, then ``os.replace`` (crash: old file kept)."""
+    path = os.fspath(path)
+    folder = os.path.dirname(os.path.abspath(path))
+    os.makedirs(folder, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=folder, prefix=".tmp-", suffix=".npz")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            np.savez(f, **arrays)  # a file object: numpy does not append ".npz" to the name
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+# ================================================================================================ dynamics
+class ActionConstrained(nn.Module):
+    """Action-constrained first-order dynamics (Rius eq. 3-6), a stateful dynamics for the filters.
+
+    Prediction is a two-step process per particle (Rius §3.1):
+
+    1. ``φ̂_t = φ_{t-1} + V + η(σ_φ)`` (eq. 3, the wrapped ``dynamics``, by default
+       ``ConstantVelocity(model.sigma_phi, alpha=model.alpha)``; the velocity is the per-particle extra
+       ``"velocity"``, updated by :meth:`update_extras` as ``V ← α V + (1 - α)(φ_t - φ_{t-1})``. Rius smooth
+       the velocity of the *estimated* state instead; to do that, overwrite ``state.extras["velocity"]``
+       between steps, as ``benchmarks/action_prior.py`` does);
+    2. keep ``φ̂_t`` if the action model accepts it (eq. 6, :meth:`ActionModel.accepts`), otherwise draw
+       again from eq. 3 for that particle. Only the rejected particles are redrawn (vectorised over them);
+       after ``max_tries`` draws a particle keeps its last, unaccepted, draw, so a pose that has left the
+       action is still tracked by the likelihood instead of freezing.
+
+    The resulting transition density is ``p(φ_t | φ_{t-1}) p(φ_t | Γ) / Z(φ_{t-1})`` (eq. 5); its normaliser
+    ``Z`` is intractable, so :meth:`log_prob` returns ``log p(φ_t | φ_{t-1}) + log P(accept | φ_t)``,
+    unnormalised in ``φ_{t-1}`` (fine for ranking, not for importance corrections that need exact densities).
+    ``sample_from_noise`` is not provided: rejection sampling uses a random number of draws, so QRS sampling
+    does not apply.
+
+    Diagnostics of the last :meth:`sample` call are in :attr:`stats` (tensors, no host sync beyond the
+    retry loop's "anything left?" check): ``accepted`` (fraction of particles finally accepted, ``(...)``),
+    ``accepted_first`` (fraction accepted at the first draw, ``(...)``) and ``tries`` (mean number of draws
+    per particle, ``(...)``). :meth:`sample_with_stats` returns them instead.
+
+    Args:
+        model: the :class:`ActionModel` (its ``dof_names`` are the particle layout).
+        dynamics: eq. 3 dynamics with ``sample(x, generator, extras=)``; default built from the model.
+        max_tries: at most this many draws per particle and frame (>= 1).
+        alpha: overrides the model's α for the default dynamics (Rius tracked with 0.5).
+        sigma_scale: multiplies the model's σ_φ for the default dynamics.
+
+    Example::
+
+        dyn = ActionConstrained(ActionModel.load("walk.npz", dof_names=skel.dof_names), alpha=0.5)
+        pf = ParticleFilter(dyn, likelihood, n_particles=2000)
+        state = pf.step(pf.init(x0), obs); dyn.stats["accepted_first"]
+    """
+
+    def __init__(
+        self,
+        model: ActionModel,
+        dynamics: Any = None,
+        *,
+        max_tries: int = 20,
+        alpha: float | None = None,
+        sigma_scale: float = 1.0,
+    ):
+        super().__init__()
+        if int(max_tries) < 1:
+            raise ValueError(f"max_tries must be >= 1, got {max_tries}")
+        if dynamics is None:
+            sigma = model.sigma_phi * float(sigma_scale)
+            dynamics = ConstantVelocity(sigma, alpha=model.alpha if alpha is None else float(alpha))
+        elif alpha is not None or sigma_scale != 1.0:
+            raise ValueError("alpha and sigma_scale configure the default dynamics; not with dynamics=")
+        self.model = model
+        self.dynamics = dynamics
+        self.max_tries = int(max_tries)
+        self.stats: dict[str, Tensor] = {}
+
+    # StatefulDynamics protocol -------------------------------------------------------------------------
+    def init_extras(self, x0: Tensor) -> Mapping[str, Tensor]:
+        """The wrapped dynamics' initial extras (zero velocity), ``{"velocity": (..., N, D)}``."""
+        if hasattr(self.dynamics, "init_extras"):
+            return self.dynamics.init_extras(x0)
+        return {}
+
+    def update_extras(
+        self, x_new: Tensor, x_old: Tensor, extras: Mapping[str, Tensor]
+    ) -> Mapping[str, Tensor]:
+        """The wrapped dynamics' update (Rius eq. 3's velocity smoothing)."""
+        if hasattr(self.dynamics, "update_extras"):
+            return self.dynamics.update_extras(x_new, x_old, extras)
+        return dict(extras)
+
+    def sample(
+        self,
+        x: Tensor,
+        generator: torch.Generator | None = None,
+        *,
+        extras: Mapping[str, Tensor] | None = None,
+    ) -> Tensor:
+        """Accepted predictions ``(..., N, D) -> (..., N, D)``; diagnostics go to :attr:`stats`."""
+        out, self.stats = self.sample_with_stats(x, generator, extras=extras)
+        return out
+
+    def sample_with_stats(
+        self,
+        x: Tensor,
+        generator: torch.Generator | None = None,
+        *,
+        extras: Mapping[str, Tensor] | None = None,
+    ) -> tuple[Tensor, dict[str, Tensor]]:
+        """Like :meth:`sample`, returning ``(x_new (..., N, D), stats)`` (see the class docstring)."""
+        extras = dict(extras or {})
+        batch = x.shape[:-1]
+        flat_x = x.reshape(-1, x.shape[-1])  # (M, D): particles are independent, so batch dims flatten
+        flat_extras = {k: v.reshape(-1, *v.shape[len(batch) :]) for k, v in extras.items()}
+        out = self._draw(flat_x, flat_extras, generator)
+        ok = self.model.accepts(out, generator)
+        first = ok.clone()
+        tries = torch.ones_like(ok, dtype=x.dtype)
+        for _ in range(self.max_tries - 1):
+            pending = (~ok).nonzero().squeeze(-1)  # one host sync per retry round, not per particle
+            if pending.numel() == 0:
+                break
+            sub = self._draw(flat_x[pending], {k: v[pending] for k, v in flat_extras.items()}, generator)
+            acc = self.model.accepts(sub, generator)
+            out = out.index_copy(0, pending, sub)
+            ok = ok.index_copy(0, pending, acc)
+            tries = tries.index_add(0, pending, torch.ones_like(sub[:, 0]))
+        stats = {
+            "accepted": ok.reshape(batch).to(x.dtype).mean(-1),
+            "accepted_first": first.reshape(batch).to(x.dtype).mean(-1),
+            "tries": tries.reshape(batch).mean(-1),
+        }
+        return out.reshape(x.shape), stats
+
+    def _draw(self, x: Tensor, extras: Mapping[str, Tensor], generator: torch.Generator | None) -> Tensor:
+        if hasattr(self.dynamics, "update_extras"):
+            return self.dynamics.sample(x, generator, extras=extras)
+        return self.dynamics.sample(x, generator)
+
+    def log_prob(self, x_new: Tensor, x_old: Tensor, *, extras: Mapping[str, Tensor] | None = None) -> Tensor:
+        """``log p(x_new | x_old) + log P(accept | x_new)`` ``(..., N)``, unnormalised in x_old (eq. 5)."""
+        if hasattr(self.dynamics, "update_extras"):
+            base = self.dynamics.log_prob(x_new, x_old, extras=extras)
+        else:
+            base = self.dynamics.log_prob(x_new, x_old)
+        return base + torch.log(self.model.accept_probability(x_new).to(base))
+
+    def extra_repr(self) -> str:
+        return f"max_tries={self.max_tries}"
+
+
+def _json_default(obj):
+    """numpy scalars and other stragglers in the metadata's training info."""
+    return obj.item() if hasattr(obj, "item") else str(obj)

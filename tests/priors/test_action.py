@@ -1,0 +1,294 @@
+"""Action model (Rius eq. 6) and action-constrained dynamics: semantics against a brute-force reference,
+file round trips and failures, device/dtype, and a run inside a ParticleFilter."""
+
+from __future__ import annotations
+
+import math
+import zipfile
+
+import numpy as np
+import pytest
+import torch
+
+from priors.action import ActionConstrained, ActionModel, ActionModelFormatError
+from priors.motion import ConstantVelocity
+from torchpf.filters import ParticleFilter, StatefulDynamics
+
+NAMES = ["Hips_Xposition", "Hips_Zrotation", "Knee_Xrotation", "Elbow_Xrotation", "Hand_Xrotation"]
+
+
+def tiny_model(**overrides) -> ActionModel:
+    """D=2 aSpace over the 3 angular DOFs Knee, Elbow, Hand (root excluded), K=4 mean postures."""
+    u = torch.tensor([[1.0, 1.0, 0.0], [1.0, -1.0, 0.0]], dtype=torch.float64) / math.sqrt(2.0)
+    kwargs = dict(
+        dof_names=NAMES,
+        posture_dofs=NAMES[2:],
+        center=[0.2, -0.1, 3.0],  # the Hand's branch centre sits near +pi: wrapping matters
+        pca_mean=[0.2, -0.1, 3.0],
+        components=u,
+        mean_performance=[[0.0, 0.0], [0.5, 0.1], [1.0, 0.0], [0.5, -0.1]],
+        std=[[0.1, 0.05], [0.1, 0.05], [0.2, 0.05], [0.1, 0.05]],
+        delta=[0.2, 0.05],
+        sigma_phi=[0.01, 0.02, 0.03, 0.03, 0.0],
+        alpha=0.25,
+        fps=30.0,
+        action="test",
+        cyclic=True,
+    )
+    kwargs.update(overrides)
+    return ActionModel(**kwargs)
+
+
+def reference_accept_probability(model: ActionModel, theta: np.ndarray) -> np.ndarray:
+    """Loop over poses and postures: Σ_j p(j | φ̃) 1[|φ̃ - ĝ_j| < 2 σ_j for all d]."""
+    g, s, delta = model.mean_performance.numpy(), model.std.numpy(), model.delta.numpy()
+    out = []
+    for pose in theta:
+        x = pose[model.posture_index.numpy()]
+        x = model.center.numpy() + (x - model.center.numpy() + np.pi) % (2 * np.pi) - np.pi
+        phi = model.components.numpy() @ (x - model.pca_mean.numpy())
+        w = np.array([np.exp(-0.5 * np.sum(((phi - g[j]) / delta) ** 2)) for j in range(len(g))])
+        inside = np.array([np.all(np.abs(phi - g[j]) < model.n_sigma * s[j]) for j in range(len(g))])
+        out.append(np.sum(w * inside) / np.sum(w))
+    return np.array(out)
+
+
+def near_mean_poses(model: ActionModel, n: int, spread: float, seed: int = 0) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    j = torch.randint(0, model.n_postures, (n,), generator=g)
+    coords = model.mean_performance[j] + spread * torch.randn(
+        n, model.n_components, generator=g, dtype=torch.float64
+    )
+    base = torch.randn(n, len(model.dof_names), generator=g, dtype=torch.float64)
+    return model.pose(coords, base)
+
+
+# ----------------------------------------------------------------------------------- eq. 6 semantics
+
+
+def test_accept_probability_matches_brute_force_reference():
+    model = tiny_model()
+    theta = near_mean_poses(model, 200, 0.1)
+    theta[:, 4] += 2 * math.pi * torch.randint(-2, 3, (200,), generator=torch.Generator().manual_seed(1))
+    ref = reference_accept_probability(model, theta.numpy())
+    got = model.accept_probability(theta)
+    assert got.shape == (200,)
+    np.testing.assert_allclose(got.numpy(), ref, rtol=1e-9, atol=1e-12)
+    assert 0.05 < ref.mean() < 0.95  # the test exercises both outcomes
+
+
+def test_project_is_periodic_and_reconstructs():
+    model = tiny_model()
+    theta = near_mean_poses(model, 50, 0.2)
+    shifted = theta.clone()
+    shifted[:, 2:] += 2 * math.pi  # every angular posture DOF one turn further
+    torch.testing.assert_close(model.project(shifted), model.project(theta))
+    coords = model.project(theta)
+    back = model.pose(coords, theta)
+    torch.testing.assert_close(model.project(back), coords)
+    # DOFs outside the posture are left alone
+    torch.testing.assert_close(back[:, :2], theta[:, :2])
+
+
+def test_accepts_frequency_matches_accept_probability():
+    model = tiny_model()
+    theta = near_mean_poses(model, 8, 0.12, seed=3)
+    p = model.accept_probability(theta)
+    g = torch.Generator().manual_seed(0)
+    draws = torch.stack([model.accepts(theta, g) for _ in range(4000)]).double().mean(0)
+    # binomial standard error <= 0.008; 5 of them
+    torch.testing.assert_close(draws, p, rtol=0, atol=0.04)
+    again = torch.stack([model.accepts(theta, torch.Generator().manual_seed(0)) for _ in range(2)])
+    assert torch.equal(again[0], again[1])  # same generator state, same answer
+
+
+def test_far_poses_are_rejected_and_batch_dims_kept():
+    model = tiny_model()
+    theta = near_mean_poses(model, 12, 0.0).reshape(3, 4, len(NAMES))
+    assert model.accepts(theta).shape == (3, 4)
+    assert model.accept_probability(theta).min() > 0.5
+    far = theta.clone()
+    far[..., 2] += 1.5  # 1.5 rad off the action's knee range
+    assert not model.accepts(far).any()
+    assert (model.accept_probability(far) == 0).all()
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_dtype_follows_input(dtype):
+    model = tiny_model()
+    theta = near_mean_poses(model, 5, 0.1).to(dtype)
+    assert model.project(theta).dtype == dtype
+    assert model.accept_probability(theta).dtype == dtype
+    assert model.accepts(theta).dtype == torch.bool
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_model_moves_to_cuda():
+    model = tiny_model().to("cuda")
+    theta = near_mean_poses(tiny_model(), 5, 0.1).cuda()
+    assert model.accepts(theta, torch.Generator("cuda").manual_seed(0)).device.type == "cuda"
+
+
+def test_bad_construction_fails_clearly():
+    with pytest.raises(ValueError, match="std has shape"):
+        tiny_model(std=[[0.1, 0.1]])
+    with pytest.raises(ValueError, match="not in dof_names"):
+        tiny_model(posture_dofs=["Nope_Xrotation", "Knee_Xrotation", "Elbow_Xrotation"])
+    with pytest.raises(ValueError, match="must be > 0"):
+        tiny_model(delta=[0.0, 0.1])
+
+
+# ----------------------------------------------------------------------------------- files
+
+
+def test_save_load_round_trip(tmp_path):
+    model = tiny_model(
+        training={"coords": np.zeros((5, 2)), "lengths": [2, 3], "phase": [0, 1, 0, 2, 3], "info": {"a": 1}}
+    )
+    path = tmp_path / "m.npz"
+    model.save(path)
+    back = ActionModel.load(path)
+    for name, buf in model.named_buffers():
+        assert torch.equal(buf, getattr(back, name)), name
+    assert (back.dof_names, back.posture_dofs, back.action, back.cyclic) == (NAMES, NAMES[2:], "test", True)
+    assert (back.alpha, back.fps, back.n_sigma) == (0.25, 30.0, 2.0)
+    assert back.training_data["info"] == {"a": 1}
+    theta = near_mean_poses(model, 64, 0.1)
+    assert torch.equal(
+        model.accepts(theta, torch.Generator().manual_seed(5)),
+        back.accepts(theta, torch.Generator().manual_seed(5)),
+    )
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".tmp")]  # no temp file left behind
+
+
+def test_load_with_dof_names_reorders_or_refuses(tmp_path):
+    model = tiny_model()
+    path = tmp_path / "m.npz"
+    model.save(path)
+    perm = [NAMES[i] for i in (3, 0, 4, 2, 1)]
+    reordered = ActionModel.load(path, dof_names=perm)
+    theta = near_mean_poses(model, 10, 0.1)
+    torch.testing.assert_close(reordered.project(theta[:, [3, 0, 4, 2, 1]]), model.project(theta))
+    torch.testing.assert_close(reordered.sigma_phi, model.sigma_phi[[3, 0, 4, 2, 1]])
+    with pytest.raises(ValueError, match=r"m\.npz: .*trained on other DOFs.*Wrist_Xrotation"):
+        ActionModel.load(path, dof_names=NAMES[:4] + ["Wrist_Xrotation"])
+    with pytest.raises(ValueError, match="expects poses"):
+        model.project(torch.zeros(3, 4))
+
+
+def test_corrupt_files_fail_clearly(tmp_path):
+    good = tmp_path / "good.npz"
+    tiny_model().save(good)
+    data = good.read_bytes()
+
+    cases = {
+        "text.npz": b"hello, I am not a model\n",
+        "truncated.npz": data[: len(data) // 2],
+        "empty.npz": b"",
+    }
+    for name, content in cases.items():
+        (tmp_path / name).write_bytes(content)
+        with pytest.raises(ActionModelFormatError, match=rf"{name}: not a readable action-model"):
+            ActionModel.load(tmp_path / name)
+
+    np.savez(tmp_path / "other.npz", x=np.zeros(3))
+    with pytest.raises(ActionModelFormatError, match=r"other\.npz: not an action-model file"):
+        ActionModel.load(tmp_path / "other.npz")
+
+    def rewrite(name, **changes):
+        with np.load(good) as npz:
+            arrays = {k: npz[k] for k in npz.files}
+        meta = __import__("json").loads(str(arrays["metadata"]))
+        meta.update(changes.pop("meta", {}))
+        arrays["metadata"] = np.array(__import__("json").dumps(meta))
+        for k, v in changes.items():
+            if v is None:
+                del arrays[k]
+            else:
+                arrays[k] = v
+        np.savez(tmp_path / name, **arrays)
+        return tmp_path / name
+
+    with pytest.raises(ActionModelFormatError, match=r"newer\.npz: format version 99 is newer"):
+        ActionModel.load(rewrite("newer.npz", meta={"version": 99}))
+    with pytest.raises(ActionModelFormatError, match=r"nostd\.npz: missing entries \['std'\]"):
+        ActionModel.load(rewrite("nostd.npz", std=None))
+    with pytest.raises(ActionModelFormatError, match=r"shape\.npz: .*std has shape"):
+        ActionModel.load(rewrite("shape.npz", std=np.ones((4, 3))))
+    with pytest.raises(ActionModelFormatError, match=r"nan\.npz: .*finite"):
+        ActionModel.load(rewrite("nan.npz", delta=np.array([np.nan, 1.0])))
+    with pytest.raises(FileNotFoundError, match="missing.npz"):
+        ActionModel.load(tmp_path / "missing.npz")
+    assert zipfile.is_zipfile(good)
+
+
+def test_failed_save_keeps_the_old_file(tmp_path, monkeypatch):
+    path = tmp_path / "m.npz"
+    tiny_model().save(path)
+    before = path.read_bytes()
+
+    def boom(*args, **kwargs):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(np, "savez", boom)
+    with pytest.raises(OSError, match="disk full"):
+        tiny_model(alpha=0.9).save(path)
+    assert path.read_bytes() == before
+    assert [p.name for p in tmp_path.iterdir()] == ["m.npz"]
+
+
+# ----------------------------------------------------------------------------------- dynamics
+
+
+def test_action_constrained_follows_the_stateful_protocol_and_reports_acceptance():
+    model = tiny_model()
+    dyn = ActionConstrained(model, alpha=0.5)
+    assert isinstance(dyn, StatefulDynamics)
+    assert isinstance(dyn.dynamics, ConstantVelocity) and dyn.dynamics.alpha == 0.5
+    x = near_mean_poses(model, 400, 0.03).reshape(2, 200, len(NAMES))
+    extras = dyn.init_extras(x)
+    out, stats = dyn.sample_with_stats(x, torch.Generator().manual_seed(0), extras=extras)
+    assert out.shape == x.shape and torch.isfinite(out).all()
+    assert set(stats) == {"accepted", "accepted_first", "tries"} and stats["accepted"].shape == (2,)
+    assert (stats["accepted"] >= stats["accepted_first"]).all() and (stats["accepted"] > 0.95).all()
+    assert (stats["tries"] >= 1).all()
+    # accepted particles are ones eq. 6 can accept; the prediction moved them by ~sigma_phi only
+    assert (model.accept_probability(out) > 0).float().mean() >= stats["accepted"].min() - 1e-9
+    assert (out - x).abs().max() < 0.2
+
+
+def test_action_constrained_retries_are_bounded():
+    model = tiny_model(std=torch.full((4, 2), 1e-6))  # accepts (almost) nothing
+    dyn = ActionConstrained(model, max_tries=3)
+    x = near_mean_poses(model, 50, 0.3)
+    out, stats = dyn.sample_with_stats(x, torch.Generator().manual_seed(0), extras=dyn.init_extras(x))
+    assert stats["accepted"] == 0 and stats["tries"] == 3
+    assert torch.isfinite(out).all()  # the last draws are kept
+
+
+def test_action_constrained_log_prob_adds_log_acceptance():
+    model = tiny_model()
+    dyn = ActionConstrained(model)
+    x_old = near_mean_poses(model, 30, 0.05)
+    extras = {"velocity": 0.01 * torch.ones_like(x_old)}
+    x_new = dyn.sample(x_old, torch.Generator().manual_seed(2), extras=extras)
+    expected = dyn.dynamics.log_prob(x_new, x_old, extras=extras) + model.accept_probability(x_new).log()
+    torch.testing.assert_close(dyn.log_prob(x_new, x_old, extras=extras), expected)
+
+
+def test_action_constrained_runs_in_a_particle_filter():
+    model = tiny_model()
+    dyn = ActionConstrained(model, alpha=0.5)
+    truth = near_mean_poses(model, 1, 0.0)[0]
+
+    def likelihood(x, obs):
+        return -0.5 * ((x - obs) ** 2).sum(-1) / 0.1**2
+
+    pf = ParticleFilter(dyn, likelihood, n_particles=300, progress=False)
+    g = torch.Generator().manual_seed(0)
+    state = pf.init(truth.expand(300, -1).clone())
+    assert state.extras["velocity"].shape == (300, len(NAMES))
+    for _ in range(4):
+        state = pf.step(state, truth, g)
+        assert 0 < float(dyn.stats["accepted_first"]) <= float(dyn.stats["accepted"]) <= 1
+    assert torch.isfinite(state.mean()).all() and state.ess() > 1

@@ -1,0 +1,652 @@
+"""Fitting action models from mocap: aSpace PCA, DTW/DBA synchronisation, σ_k, Δ, σ_φ and α (Rius eq. 1-3).
+
+One *action* (walk, bend, ...) is learned from several *performances*: mocap clips of different lengths,
+speeds and performers, each a :class:`~training.mocap.Motion` (``angles (T, D_full)``). The result is an
+:class:`priors.action.ActionModel` ``Γ = (Ω, ĝ, σ)`` plus σ_φ, α and Δ (see :mod:`priors.action`), saved as
+``.npz`` and used by :class:`priors.action.ActionConstrained` in a particle filter.
+
+Recommended use::
+
+    from training import fit_action_model
+    model = fit_action_model([load_csv(p) for p in paths], n_components=13, action="walk")
+    model.save("walk.npz")
+
+or ``python -m training fit --action walk --skeleton S.urdf --out walk.npz DATA/*.csv``; the sklearn-style
+:class:`ActionModelFitter` keeps the intermediate results (``coords_``, ``paths_``, ``pca_``, ...).
+
+**Steps** (all in float64 numpy; the performances are small):
+
+1. *Frame rate.* Every performance is resampled (linear interpolation of its unwrapped angles) to the model's
+   ``fps`` (default: the performances' common rate). σ_φ and α are per-frame quantities at this rate, so fit
+   at the rate you will track at.
+2. *Postures.* The posture is the DOF vector without the root (``exclude_root``: translation *and*
+   orientation; in CMU's ``Zrotation Yrotation Xrotation`` root order the heading is the middle Euler angle
+   and cannot be separated from the tilt channel by channel) and without the channels matching ``exclude``
+   (default: hands, fingers and thumbs, whose CMU tracks glitch and flip).
+3. *Angles for PCA.* Raw angles in radians (the paper's choice; sin/cos would double the dimension and
+   curve the PCA's straight lines). Each angular posture DOF is brought to the branch nearest its circular
+   mean over the training set, ``x = center + wrap(θ - center)``: a function of the pose alone, so particles
+   are projected exactly like training frames, and equal to the unwrapped angle for every DOF that stays
+   within ±π of its mean. (σ_φ and α, which are about time, use ``np.unwrap`` along each performance.)
+4. *aSpace* Ω: ``sklearn.decomposition.PCA`` over the postures of all frames of all performances; ``D``
+   components by count (``n_components=13``, the paper) or by explained variance (``n_components=0.95``).
+5. *Synchronisation* (Rius §2 with Mozerov et al.'s dense matching, here DTW Barycenter Averaging): a mean
+   performance ĝ of ``K`` postures is initialised from one performance, then every performance is aligned
+   to ĝ with dynamic time warping in aSpace and each ĝ_k is re-estimated as the mean of the frames matched
+   to it, until the alignments stop changing (``max_iter`` at most). The DTW maps each frame ``i`` to one
+   mean posture ``k(i)``; from one frame to the next ``k`` stays (at most ``max_stay`` times in a row) or
+   advances by 1 .. ``max_step`` — a slope constraint that bounds the local speed ratio to
+   ``[1 / max_step, max_stay + 1]`` frames per mean posture; the path cost is ``Σ_i ||φ̃_i - ĝ_{k(i)}||²``.
+   *Cyclic* actions (walking, waving) get a cyclic mean (one cycle, ``K`` = median period; ``k`` advances
+   modulo ``K`` and the path may start and end at any phase, because clips start and stop anywhere in the
+   cycle); acyclic ones (a single bend) a mean of the median length with paths from first to last posture.
+   ``cyclic=None`` decides per data set from the performances' periodicity (YIN-style normalised difference
+   of the aSpace trajectory).
+6. *Spreads.* With residuals ``r_i = φ̃_i - ĝ_{k(i)}``: σ_k is the RMS of the residuals of the frames matched
+   to posture k, pooled over neighbouring postures with a Gaussian window of ``sigma_smoothing`` postures
+   (a few frames per posture per performance are too few for a standard deviation); Δ the RMS of all
+   residuals per dimension.
+7. *Constant-velocity statistics* (Rius eq. 3): with ``V_t = α V_{t-1} + (1 - α)(φ_t - φ_{t-1})`` and the
+   prediction ``φ̂_{t+1} = φ_t + V_t``, α minimises the squared prediction error over the posture DOFs of
+   all performances (bounded scalar least squares), and σ_φ is the per-DOF robust standard deviation
+   (``1.4826 · median |e|``, insensitive to Euler flips) of the prediction errors ``e`` at that α.
+
+Shapes: ``T`` frames, ``D_full`` DOFs of the pose vector, ``P`` posture DOFs, ``D`` aSpace dimensions,
+``K`` mean postures, ``R`` performances.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import torch
+from scipy.optimize import minimize_scalar
+from scipy.signal import lfilter
+from sklearn.decomposition import PCA
+from tqdm.auto import tqdm
+
+from priors.action import ActionModel, is_angular
+from training.mocap import Motion
+
+#: Default ``exclude`` patterns (case-insensitive regular expressions searched in DOF names): the hand,
+#: finger and thumb channels, which glitch and flip in the CMU data.
+HAND_PATTERNS = ("hand", "finger", "thumb")
+
+#: Normalised-difference threshold under which a performance counts as periodic (YIN uses 0.1-0.2 on
+#: audio; mocap cycles repeat less exactly).
+PERIODIC_THRESHOLD = 0.35
+
+
+# ================================================================================================ helpers
+def root_dofs(dof_names: Sequence[str]) -> list[str]:
+    """The root's DOFs: those named ``<joint>_*`` with ``<joint>`` the joint of the first DOF (``Hips``).
+
+    URDF skeletons of this project list the root (3 prismatic + 3 revolute DOFs) first and name DOFs
+    ``<Joint>_<channel>`` (:mod:`training.mocap`).
+    """
+    if not dof_names:
+        return []
+    prefix = dof_names[0].rsplit("_", 1)[0] + "_"
+    return [n for n in dof_names if n.startswith(prefix)]
+
+
+def select_posture_dofs(
+    dof_names: Sequence[str], *, exclude_root: bool = True, exclude: Sequence[str] = HAND_PATTERNS
+) -> list[str]:
+    """Posture DOFs: ``dof_names`` without the root (if ``exclude_root``) and without names matching any of
+    the ``exclude`` regular expressions (case-insensitive), in ``dof_names`` order."""
+    drop = set(root_dofs(dof_names)) if exclude_root else set()
+    patterns = [re.compile(p, re.IGNORECASE) for p in exclude]
+    return [n for n in dof_names if n not in drop and not any(p.search(n) for p in patterns)]
+
+
+def circular_mean(x: np.ndarray, axis: int = 0) -> np.ndarray:
+    """Mean direction ``atan2(mean sin, mean cos)`` of angles (radians) along ``axis``."""
+    return np.arctan2(np.sin(x).mean(axis), np.cos(x).mean(axis))
+
+
+def wrap_about(x: np.ndarray, center: np.ndarray, angular: np.ndarray) -> np.ndarray:
+    """``center + wrap(x - center)`` (wrap into ``[-π, π)``) on the ``angular`` columns of ``x (..., P)``."""
+    wrapped = center + np.mod(x - center + math.pi, 2.0 * math.pi) - math.pi
+    return np.where(angular, wrapped, x)
+
+
+def resample(values: np.ndarray, fps: float, new_fps: float) -> np.ndarray:
+    """Linear interpolation of ``values (T, D)`` sampled at ``fps`` onto the grid ``0, 1/new_fps, ...``
+    within the clip (unwrap angles first)."""
+    T = values.shape[0]
+    if math.isclose(fps, new_fps, rel_tol=1e-9) or T < 2:
+        return values.copy()
+    n = int(math.floor((T - 1) * new_fps / fps + 1e-9)) + 1
+    pos = np.arange(n) * (fps / new_fps)  # fractional source frame of each new frame
+    i0 = np.minimum(np.floor(pos).astype(int), T - 2)
+    w = (pos - i0)[:, None]
+    return (1.0 - w) * values[i0] + w * values[i0 + 1]
+
+
+def estimate_period(coords: np.ndarray, min_overlap: float = 0.2) -> tuple[int | None, float]:
+    """Period (frames) of a trajectory ``coords (T, D)`` and its normalised difference score.
+
+    ``d(τ) = mean_i ||z_{i+τ} - z_i||²`` is normalised YIN-style by its running mean,
+    ``d'(τ) = d(τ) / ((1/τ) Σ_{u<=τ} d(u))``; the period is the first local minimum of ``d'`` below
+    :data:`PERIODIC_THRESHOLD` (else the global minimum), searched over lags that leave at least
+    ``min_overlap · T`` (and 4) overlapping frames. Returns ``(None, inf)`` when the clip is too short.
+    """
+    T = coords.shape[0]
+    max_lag = T - max(4, int(math.ceil(min_overlap * T)))
+    if max_lag < 3:
+        return None, math.inf
+    d = np.array([np.mean(np.sum((coords[tau:] - coords[:-tau]) ** 2, 1)) for tau in range(1, max_lag + 1)])
+    cmnd = d * np.arange(1, max_lag + 1) / np.maximum(np.cumsum(d), 1e-300)
+    interior = np.flatnonzero((cmnd[1:-1] <= cmnd[:-2]) & (cmnd[1:-1] <= cmnd[2:])) + 1
+    below = [i for i in interior if cmnd[i] < PERIODIC_THRESHOLD]
+    i = below[0] if below else (int(interior[np.argmin(cmnd[interior])]) if len(interior) else None)
+    if i is None:
+        return None, math.inf
+    return i + 1, float(cmnd[i])
+
+
+def dtw_align(
+    coords: np.ndarray,
+    mean: np.ndarray,
+    *,
+    cyclic: bool,
+    max_step: int = 2,
+    max_stay: int = 1,
+) -> tuple[np.ndarray, float]:
+    """Slope-constrained DTW of a performance to a mean performance.
+
+    Args:
+        coords: ``(T, D)`` the performance in aSpace.
+        mean: ``(K, D)`` the mean performance ĝ.
+        cyclic: ĝ is one cycle (``k`` advances modulo ``K``; free start and end phase) or a whole
+            performance (path from ``k = 0`` at the first frame to ``k = K-1`` at the last).
+        max_step: largest advance of ``k`` from one frame to the next.
+        max_stay: most consecutive frames that keep the same ``k`` after the first.
+
+    Returns:
+        ``(path (T,) int, cost)``: the matched mean posture of each frame and the mean squared distance
+        ``(1/T) Σ_i ||coords_i - mean_{path_i}||²`` of the optimal path.
+
+    Raises:
+        ValueError: no path satisfies the constraints (acyclic, lengths differ by more than the slope allows).
+    """
+    T, K = coords.shape[0], mean.shape[0]
+    S = max_stay + 1
+    cost = (np.sum(coords**2, 1)[:, None] + np.sum(mean**2, 1)[None, :] - 2.0 * coords @ mean.T).clip(
+        min=0.0
+    )  # (T, K)
+    acc = np.full((K, S), np.inf)  # acc[k, s]: best cost of frame i at posture k after s stays
+    if cyclic:
+        acc[:, 0] = cost[0]
+    else:
+        acc[0, 0] = cost[0, 0]
+    from_step = np.zeros((T, K), dtype=np.int16)  # advance a of the best entry into (i, k, s=0)
+    from_stay = np.zeros((T, K), dtype=np.int16)  # stay count s' of its predecessor (i-1, k-a, s')
+    steps = np.arange(1, max_step + 1)
+    ks = np.arange(K)
+    for i in range(1, T):
+        best_s = acc.argmin(1)
+        best = acc[ks, best_s]  # (K,)
+        src = ks[None, :] - steps[:, None]  # (A, K) predecessor postures
+        if cyclic:
+            src = src % K
+            cand = best[src]
+        else:
+            cand = np.where(src >= 0, best[src.clip(min=0)], np.inf)
+        a = cand.argmin(0)
+        new = np.empty_like(acc)
+        new[:, 0] = cand[a, ks] + cost[i]
+        new[:, 1:] = acc[:, :-1] + cost[i][:, None]
+        from_step[i] = steps[a]
+        from_stay[i] = best_s[src[a, ks]]
+        acc = new
+    if cyclic:
+        k, s = np.unravel_index(int(np.argmin(acc)), acc.shape)
+    else:
+        k, s = K - 1, int(np.argmin(acc[K - 1]))
+    total = acc[k, s]
+    if not np.isfinite(total):
+        raise ValueError(
+            f"no alignment of a {T}-frame performance to a {K}-posture mean within the slope constraints "
+            f"(max_step={max_step}, max_stay={max_stay}); trim the performances or relax the constraints"
+        )
+    path = np.empty(T, dtype=np.int64)
+    path[T - 1] = k
+    for i in range(T - 1, 0, -1):
+        if s > 0:
+            s -= 1
+        else:
+            k, s = (k - int(from_step[i, k])) % K, int(from_stay[i, k])
+        path[i - 1] = k
+    return path, float(total) / T
+
+
+def _fill_missing(values: np.ndarray, counts: np.ndarray, cyclic: bool) -> np.ndarray:
+    """Interpolate rows of ``values (K, D)`` whose ``counts`` are 0 from the rows that have data."""
+    have = np.flatnonzero(counts > 0)
+    if len(have) == len(counts):
+        return values
+    K = len(counts)
+    out = values.copy()
+    missing = np.flatnonzero(counts == 0)
+    for d in range(values.shape[1]):
+        out[missing, d] = np.interp(missing, have, values[have, d], period=K if cyclic else None)
+    return out
+
+
+def _smooth_over_postures(values: np.ndarray, width: float, cyclic: bool) -> np.ndarray:
+    """Gaussian smoothing of ``values (K, ...)`` along postures (std ``width``; cyclic or truncated)."""
+    if width <= 0:
+        return values
+    K = values.shape[0]
+    r = int(math.ceil(3 * width))
+    offsets = np.arange(-r, r + 1)
+    w = np.exp(-0.5 * (offsets / width) ** 2)
+    out = np.zeros_like(values)
+    for o, wo in zip(offsets, w, strict=True):
+        if cyclic:
+            out += wo * np.roll(values, o, axis=0)
+        else:  # truncated window: postures past the ends contribute nothing
+            shifted = np.zeros_like(values)
+            if o >= 0:
+                shifted[o:] = values[: K - o]
+            else:
+                shifted[:o] = values[-o:]
+            out += wo * shifted
+    return out
+
+
+def constant_velocity_errors(deltas: np.ndarray, alpha: float) -> np.ndarray:
+    """Prediction errors of Rius eq. 3 along one performance.
+
+    Args:
+        deltas: ``(T-1, D)`` frame differences ``φ_t - φ_{t-1}``.
+        alpha: velocity smoothing α.
+
+    Returns:
+        ``(T-2, D)`` errors ``e_{t+1} = (φ_{t+1} - φ_t) - V_t`` with ``V_t = α V_{t-1} + (1-α) δ_t``,
+        ``V`` started at the first difference.
+    """
+    if deltas.shape[0] < 2:
+        return np.zeros((0, deltas.shape[1]))
+    v = lfilter([1.0 - alpha], [1.0, -alpha], deltas, axis=0, zi=alpha * deltas[:1])[0]
+    return deltas[1:] - v[:-1]
+
+
+# ================================================================================================ fitter
+class ActionModelFitter:
+    """Learn an :class:`~priors.action.ActionModel` from performances of one action (sklearn style).
+
+    Configuration is keyword-only and only stored by ``__init__``; :meth:`fit` learns. See the module
+    docstring for the method.
+
+    Args:
+        n_components: aSpace dimension ``D`` (int, Rius: 13) or the fraction of variance to keep (float in
+            (0, 1)); capped at the number of posture DOFs and frames.
+        action: the action's name, stored in the model.
+        fps: model frame rate (Hz); performances are resampled to it. ``None``: their common rate (the median
+            if they differ).
+        cyclic: ``True``/``False``, or ``None`` to decide from the data.
+        n_postures: ``K``; ``None``: the median period (cyclic) or median length (acyclic), in frames.
+        exclude_root: leave the root's DOFs (translation and orientation) out of the posture.
+        exclude: regular expressions (case-insensitive) of further DOFs to leave out of the posture.
+        max_step, max_stay: DTW slope constraint (see :func:`dtw_align`).
+        max_iter: most synchronisation (DBA) iterations.
+        sigma_smoothing: std (in postures) of the window that pools residuals for σ_k; 0: none.
+        n_sigma: acceptance half-width in σ (Rius eq. 6: 2).
+        alpha: fix α instead of fitting it.
+        validate: also fit ``R`` leave-one-performance-out models and measure how often each accepts the
+            performance left out (``validation_acceptance_``): the check that ``D`` generalises. With few
+            performers the trailing components only fit the training performers and this rate collapses
+            (Rius §4: "too high values lead to overfitting"); lower ``n_components`` then.
+        progress: show a progress bar over the synchronisation iterations.
+
+    Learned attributes: ``model_`` (the ActionModel), ``dof_names_``, ``posture_dofs_``, ``fps_``,
+    ``center_ (P,)``, ``pca_`` (the sklearn PCA), ``coords_`` (R arrays ``(T_r, D)``: aSpace trajectories),
+    ``periods_`` (per performance, frames or None), ``cyclic_``, ``n_postures_``,
+    ``mean_performance_ (K, D)``, ``paths_`` (R arrays ``(T_r,)``: matched mean posture per frame),
+    ``costs_`` (mean DTW cost per iteration), ``n_iter_``, ``converged_``, ``std_ (K, D)``, ``delta_ (D,)``,
+    ``alpha_``, ``sigma_phi_ (D_full,)``, ``train_acceptance_`` (mean eq. 6 acceptance probability of the
+    training frames), ``validation_acceptance_`` (``(R,)`` the same for each left-out performance under the
+    model fitted without it, with ``validate=True``; else None).
+
+    Example::
+
+        fitter = ActionModelFitter(n_components=13, action="walk", fps=30).fit(motions)
+        fitter.model_.save("walk.npz"); fitter.paths_[0]      # phase of each frame of the first performance
+    """
+
+    def __init__(
+        self,
+        *,
+        n_components: int | float = 13,
+        action: str = "action",
+        fps: float | None = None,
+        cyclic: bool | None = None,
+        n_postures: int | None = None,
+        exclude_root: bool = True,
+        exclude: Sequence[str] = HAND_PATTERNS,
+        max_step: int = 2,
+        max_stay: int = 1,
+        max_iter: int = 30,
+        sigma_smoothing: float = 1.0,
+        n_sigma: float = 2.0,
+        alpha: float | None = None,
+        validate: bool = False,
+        progress: bool = False,
+    ):
+        self.n_components = n_components
+        self.action = action
+        self.fps = fps
+        self.cyclic = cyclic
+        self.n_postures = n_postures
+        self.exclude_root = exclude_root
+        self.exclude = tuple(exclude)
+        self.max_step = max_step
+        self.max_stay = max_stay
+        self.max_iter = max_iter
+        self.sigma_smoothing = sigma_smoothing
+        self.n_sigma = n_sigma
+        self.alpha = alpha
+        self.validate = validate
+        self.progress = progress
+
+    # ------------------------------------------------------------------------------------------ checks
+    def _check_config(self) -> None:
+        n = self.n_components
+        if isinstance(n, bool) or not isinstance(n, int | float | np.integer | np.floating):
+            raise ValueError(f"n_components must be an int >= 1 or a float in (0, 1), got {n!r}")
+        if isinstance(n, int | np.integer) and n < 1:
+            raise ValueError(f"n_components must be >= 1, got {n}")
+        if isinstance(n, float | np.floating) and not 0.0 < n < 1.0:
+            raise ValueError(f"n_components as a variance fraction must be in (0, 1), got {n}")
+        if self.fps is not None and not (math.isfinite(self.fps) and self.fps > 0):
+            raise ValueError(f"fps must be > 0, got {self.fps}")
+        if self.n_postures is not None and int(self.n_postures) < 2:
+            raise ValueError(f"n_postures must be >= 2, got {self.n_postures}")
+        if int(self.max_step) < 1 or int(self.max_stay) < 0 or int(self.max_iter) < 1:
+            raise ValueError("need max_step >= 1, max_stay >= 0, max_iter >= 1")
+        if self.sigma_smoothing < 0 or not self.n_sigma > 0:
+            raise ValueError("need sigma_smoothing >= 0 and n_sigma > 0")
+        if self.alpha is not None and not 0.0 <= self.alpha <= 1.0:
+            raise ValueError(f"alpha must be in [0, 1], got {self.alpha}")
+
+    def _check_performances(self, performances: Sequence[Motion]) -> list[Motion]:
+        motions = list(performances)
+        if not motions:
+            raise ValueError("fit needs at least one performance")
+        for i, m in enumerate(motions):
+            if not isinstance(m, Motion):
+                raise TypeError(f"performance {i} is a {type(m).__name__}, expected training.mocap.Motion")
+        names = motions[0].dof_names
+        out = []
+        for i, m in enumerate(motions):
+            label = m.name or f"performance {i}"
+            if set(m.dof_names) != set(names) or len(m.dof_names) != len(names):
+                missing = sorted(set(names) - set(m.dof_names))[:5]
+                extra = sorted(set(m.dof_names) - set(names))[:5]
+                raise ValueError(
+                    f"{label}: DOFs differ from those of {motions[0].name or 'performance 0'} "
+                    f"(missing {missing}, extra {extra})"
+                )
+            if m.n_frames < 4:
+                raise ValueError(f"{label}: {m.n_frames} frames; a performance needs at least 4")
+            if not torch.isfinite(m.angles).all():
+                raise ValueError(f"{label}: angles must be finite")
+            out.append(m if m.dof_names == names else m.select(names))
+        return out
+
+    # ------------------------------------------------------------------------------------------ fit
+    def fit(self, performances: Sequence[Motion]) -> ActionModelFitter:
+        """Learn the model from ``performances`` (``R`` Motions with the same DOFs); returns ``self``."""
+        self._check_config()
+        motions = self._check_performances(performances)
+        names = list(motions[0].dof_names)
+        angular_full = np.array([is_angular(n) for n in names])
+        fps = float(self.fps) if self.fps is not None else float(np.median([m.fps for m in motions]))
+
+        # 1. unwrap along time, then resample (interpolating wrapped angles across ±π would be wrong)
+        full = []
+        for m in motions:
+            a = m.angles.detach().to("cpu", torch.float64).numpy().copy()
+            a[:, angular_full] = np.unwrap(a[:, angular_full], axis=0)
+            full.append(resample(a, m.fps, fps))
+        if any(len(a) < 4 for a in full):
+            raise ValueError(f"a performance has fewer than 4 frames at {fps:g} fps")
+
+        # 2-3. postures on the action's angle branch
+        posture = select_posture_dofs(names, exclude_root=self.exclude_root, exclude=self.exclude)
+        if not posture:
+            raise ValueError("no posture DOFs left after exclude_root / exclude")
+        pidx = np.array([names.index(n) for n in posture])
+        angular = angular_full[pidx]
+        stacked = np.concatenate([a[:, pidx] for a in full])
+        center = np.where(angular, circular_mean(stacked), stacked.mean(0))
+        postures = [wrap_about(a[:, pidx], center, angular) for a in full]
+
+        # 4. aSpace
+        X = np.concatenate(postures)
+        n = self.n_components
+        if isinstance(n, int | np.integer):
+            n = int(min(n, X.shape[0], X.shape[1]))
+        pca = PCA(n_components=n, svd_solver="full").fit(X)
+        coords = [pca.transform(p) for p in postures]
+
+        # 5. synchronisation
+        periods = [estimate_period(z) for z in coords]
+        cyclic = self.cyclic
+        found = [p for p, score in periods if p is not None and score < PERIODIC_THRESHOLD]
+        if cyclic is None:
+            cyclic = len(found) * 2 >= len(coords) and len(found) > 0
+        if self.n_postures is not None:
+            K = int(self.n_postures)
+        elif cyclic:
+            if not found:
+                raise ValueError("cyclic=True but no performance shows a period; pass n_postures")
+            K = int(round(float(np.median(found))))
+        else:
+            K = int(round(float(np.median([len(z) for z in coords]))))
+        K = max(K, 2)
+        mean = self._initial_mean(coords, periods, K, bool(cyclic))
+        paths, costs, converged, prev = [], [], False, None
+        bar = tqdm(range(int(self.max_iter)), desc=f"synchronising {self.action}", disable=not self.progress)
+        for _ in bar:
+            aligned = [
+                self._align(z, mean, bool(cyclic), m.name or f"performance {r}")
+                for r, (z, m) in enumerate(zip(coords, motions, strict=True))
+            ]
+            paths = [p for p, _ in aligned]
+            costs.append(float(np.mean([c for _, c in aligned])))
+            bar.set_postfix(cost=f"{costs[-1]:.4g}")
+            if prev is not None and all(np.array_equal(p, q) for p, q in zip(paths, prev, strict=True)):
+                converged = True  # same alignment, hence same mean: a fixed point of DBA
+                break
+            mean = self._update_mean(coords, paths, mean, bool(cyclic))
+            prev = paths
+        bar.close()
+
+        # 6. spreads
+        resid = np.concatenate([z - mean[p] for z, p in zip(coords, paths, strict=True)])
+        phase = np.concatenate(paths)
+        delta = np.sqrt(np.mean(resid**2, 0))
+        delta = np.maximum(delta, 1e-12 + 1e-9 * float(delta.max()))
+        sq = np.zeros((K, mean.shape[1]))
+        np.add.at(sq, phase, resid**2)
+        counts = np.bincount(phase, minlength=K).astype(float)
+        sq_s = _smooth_over_postures(sq, float(self.sigma_smoothing), bool(cyclic))
+        n_s = _smooth_over_postures(counts[:, None], float(self.sigma_smoothing), bool(cyclic))
+        std = np.where(n_s > 1e-9, np.sqrt(sq_s / np.maximum(n_s, 1e-300)), delta)
+        std = np.maximum(std, 1e-3 * delta)  # a posture matched by identical frames would accept nothing
+
+        # 7. constant-velocity statistics
+        deltas = [np.diff(a, axis=0) for a in full]
+        if self.alpha is None:
+
+            def loss(alpha: float) -> float:
+                return float(sum(np.sum(constant_velocity_errors(d[:, pidx], alpha) ** 2) for d in deltas))
+
+            alpha = float(minimize_scalar(loss, bounds=(0.0, 0.999), method="bounded").x)
+        else:
+            alpha = float(self.alpha)
+        errors = np.concatenate([constant_velocity_errors(d, alpha) for d in deltas])
+        sigma_phi = 1.4826 * np.median(np.abs(errors), 0) if len(errors) else np.zeros(len(names))
+
+        self.dof_names_ = names
+        self.posture_dofs_ = posture
+        self.fps_ = fps
+        self.center_ = center
+        self.pca_ = pca
+        self.coords_ = coords
+        self.periods_ = [p for p, _ in periods]
+        self.cyclic_ = bool(cyclic)
+        self.n_postures_ = K
+        self.mean_performance_ = mean
+        self.paths_ = paths
+        self.costs_ = costs
+        self.n_iter_ = len(costs)
+        self.converged_ = converged
+        self.std_ = std
+        self.delta_ = delta
+        self.alpha_ = alpha
+        self.sigma_phi_ = sigma_phi
+        self.model_ = ActionModel(
+            dof_names=names,
+            posture_dofs=posture,
+            center=center,
+            pca_mean=pca.mean_,
+            components=pca.components_,
+            mean_performance=mean,
+            std=std,
+            delta=delta,
+            sigma_phi=sigma_phi,
+            alpha=alpha,
+            fps=fps,
+            action=self.action,
+            cyclic=bool(cyclic),
+            n_sigma=self.n_sigma,
+            angular=angular.tolist(),
+            explained_variance=pca.explained_variance_,
+            explained_variance_ratio=pca.explained_variance_ratio_,
+            training={
+                "coords": np.concatenate(coords),
+                "lengths": np.array([len(z) for z in coords]),
+                "phase": phase,
+                "info": {
+                    "performances": [m.name or f"performance {i}" for i, m in enumerate(motions)],
+                    "config": self.get_params(),
+                },
+            },
+        )
+        self.train_acceptance_ = float(
+            self.model_.accept_probability_aspace(torch.from_numpy(np.concatenate(coords))).mean()
+        )
+        self.validation_acceptance_ = None
+        if self.validate and len(motions) >= 2:
+            params = {**self.get_params(), "fps": fps, "cyclic": bool(cyclic), "validate": False}
+            rates = []
+            for r in tqdm(range(len(motions)), desc="validating", disable=not self.progress):
+                sub = ActionModelFitter(**params).fit(motions[:r] + motions[r + 1 :]).model_
+                frames = torch.from_numpy(full[r])  # unwrapped and resampled: the model wraps it itself
+                rates.append(float(sub.accept_probability(frames).mean()))
+            self.validation_acceptance_ = np.array(rates)
+        return self
+
+    def _align(self, z: np.ndarray, mean: np.ndarray, cyclic: bool, label: str) -> tuple[np.ndarray, float]:
+        try:
+            return dtw_align(z, mean, cyclic=cyclic, max_step=self.max_step, max_stay=self.max_stay)
+        except ValueError as e:
+            raise ValueError(f"{label}: {e}") from None
+
+    def _initial_mean(self, coords: list[np.ndarray], periods, K: int, cyclic: bool) -> np.ndarray:
+        """ĝ before DBA: a cycle folded from the most typical periodic performance, or the most typical
+        performance resampled to ``K`` frames (acyclic)."""
+        if cyclic:
+            cands = [(abs(p - K), i) for i, (p, _) in enumerate(periods) if p is not None]
+            r = min(cands)[1] if cands else int(np.argmax([len(z) for z in coords]))
+            z = coords[r]
+            period = periods[r][0] or len(z)
+            bins = np.floor((np.arange(len(z)) / period % 1.0) * K).astype(int) % K
+            sums = np.zeros((K, z.shape[1]))
+            np.add.at(sums, bins, z)
+            counts = np.bincount(bins, minlength=K)
+            return _fill_missing(sums / np.maximum(counts, 1)[:, None], counts, True)
+        r = int(np.argmin([abs(len(z) - K) for z in coords]))
+        return resample(coords[r], 1.0, (K - 1) / max(len(coords[r]) - 1, 1))[:K]
+
+    @staticmethod
+    def _update_mean(coords, paths, mean: np.ndarray, cyclic: bool) -> np.ndarray:
+        """DBA update: each ĝ_k is the mean of the frames matched to it.
+
+        A posture that a path skips (an advance of 2 or more between frames ``i-1`` and ``i``) gets the
+        linear interpolation of those two frames at its place, as classic DTW would match it to one of
+        them: without it, postures that faster performances skip are averaged over fewer performances and
+        the mean gets kinks there. Postures nobody matched are interpolated along ĝ.
+        """
+        K = mean.shape[0]
+        sums = np.zeros_like(mean)
+        counts = np.zeros(K)
+        for z, p in zip(coords, paths, strict=True):
+            np.add.at(sums, p, z)
+            counts += np.bincount(p, minlength=K)
+            step = np.diff(p) % K if cyclic else np.diff(p)
+            for gap in range(2, int(step.max(initial=0)) + 1):
+                i = np.flatnonzero(step == gap) + 1  # frames reached by a jump of `gap` postures
+                for s in range(1, gap):
+                    k = (p[i - 1] + s) % K
+                    w = s / gap
+                    np.add.at(sums, k, (1.0 - w) * z[i - 1] + w * z[i])
+                    counts += np.bincount(k, minlength=K)
+        return _fill_missing(sums / np.maximum(counts, 1)[:, None], counts, cyclic)
+
+    # ------------------------------------------------------------------------------------------ after fit
+    def align(self, performance: Motion) -> np.ndarray:
+        """Matched mean posture of every frame of a new performance: ``(T',)`` int at the model's fps."""
+        if not hasattr(self, "model_"):
+            raise RuntimeError("ActionModelFitter: call fit() first")
+        m = performance if performance.dof_names == self.dof_names_ else performance.select(self.dof_names_)
+        a = m.angles.detach().to("cpu", torch.float64).numpy().copy()
+        ang = np.array([is_angular(n) for n in self.dof_names_])
+        a[:, ang] = np.unwrap(a[:, ang], axis=0)
+        a = resample(a, m.fps, self.fps_)
+        z = self.model_.project(torch.from_numpy(a)).numpy()
+        return dtw_align(
+            z, self.mean_performance_, cyclic=self.cyclic_, max_step=self.max_step, max_stay=self.max_stay
+        )[0]
+
+    def get_params(self) -> dict[str, Any]:
+        """The configuration (JSON-able), as passed to ``__init__``."""
+        return {
+            "n_components": self.n_components,
+            "action": self.action,
+            "fps": self.fps,
+            "cyclic": self.cyclic,
+            "n_postures": self.n_postures,
+            "exclude_root": self.exclude_root,
+            "exclude": list(self.exclude),
+            "max_step": self.max_step,
+            "max_stay": self.max_stay,
+            "max_iter": self.max_iter,
+            "sigma_smoothing": self.sigma_smoothing,
+            "n_sigma": self.n_sigma,
+            "alpha": self.alpha,
+            "validate": self.validate,
+        }
+
+
+def fit_action_model(motions: Sequence[Motion], n_components: int | float = 13, **options) -> ActionModel:
+    """Fit an action model to performances of one action: ``ActionModelFitter(...).fit(motions).model_``.
+
+    Args:
+        motions: ``R`` performances (Motions with the same DOF names; any lengths and frame rates).
+        n_components: aSpace dimension ``D`` (Rius: 13) or the fraction of variance to keep.
+        **options: any other :class:`ActionModelFitter` option (``action``, ``fps``, ``cyclic``, ...).
+
+    Returns:
+        the :class:`~priors.action.ActionModel` (save it with ``.save(path)``).
+    """
+    return ActionModelFitter(n_components=n_components, **options).fit(motions).model_
