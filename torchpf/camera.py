@@ -39,12 +39,13 @@ from __future__ import annotations
 
 import math
 import os
-import tempfile
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 import torch
+
+from torchpf.io import write_atomic
 
 __all__ = [
     "Camera",
@@ -61,22 +62,6 @@ __all__ = [
 
 class CameraFileError(ValueError):
     """A camera file is missing a key or holds a value of the wrong shape; the message names both."""
-
-
-def _atomic_write(path: str | os.PathLike, data: bytes | str) -> None:
-    """Write through a temporary file in the same folder and ``os.replace`` (no torn files on a crash)."""
-    path = os.fspath(path)
-    folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=folder, prefix=".tmp-", suffix=os.path.basename(path))
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data.encode("utf-8") if isinstance(data, str) else data)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 def project_points(
@@ -498,7 +483,7 @@ def save_cameras(
     data: dict = {"cameras": {str(k): cam.to_dict() for k, cam in rig.items()}}
     if depth is not None:
         data["depth_camera"] = depth
-    _atomic_write(path, yaml.safe_dump(data, sort_keys=False, default_flow_style=None))
+    write_atomic(path, yaml.safe_dump(data, sort_keys=False, default_flow_style=None))
 
 
 # ---------------------------------------------------------------------- rigs

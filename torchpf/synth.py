@@ -30,7 +30,6 @@ Example::
 
 from __future__ import annotations
 
-import csv
 import io
 import os
 from dataclasses import dataclass, field
@@ -38,8 +37,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from torchpf.camera import Camera, CameraRig, _atomic_write, load_cameras, save_cameras
+from torchpf.camera import Camera, CameraRig, load_cameras, save_cameras
 from torchpf.geometry import raycast_capsules
+from torchpf.io import read_mocap_csv, write_atomic, write_mocap_csv
 from torchpf.observations import Frame, Keypoints2D, PointCloud, Silhouettes
 
 __all__ = [
@@ -57,50 +57,18 @@ __all__ = [
 
 # ---------------------------------------------------------------------- truth.csv
 def save_truth_csv(path, angles, dof_names, times=None) -> None:
-    """Write angles (T, D) as CSV: header ``[time,]<dof names>``, one row per frame; atomic.
-
-    Same format as the mocap CSV of DESIGN.md (``training.mocap.save_csv``), so either reader loads it.
-    """
-    a = np.asarray(angles.detach().cpu() if isinstance(angles, torch.Tensor) else angles, dtype=np.float64)
-    if a.ndim != 2 or a.shape[1] != len(dof_names):
-        raise ValueError(f"angles must have shape (T, {len(dof_names)}), got {a.shape}")
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow((["time"] if times is not None else []) + list(dof_names))
-    t = None if times is None else np.asarray(times, dtype=np.float64).reshape(-1)
-    for i, row in enumerate(a):
-        w.writerow(([repr(float(t[i]))] if t is not None else []) + [repr(float(x)) for x in row])
-    _atomic_write(path, buf.getvalue())
+    """Write angles (T, D) as mocap CSV (DESIGN.md; :func:`torchpf.io.write_mocap_csv`), atomically."""
+    write_mocap_csv(path, dof_names, angles, times=times)
 
 
 def load_truth_csv(path) -> tuple[torch.Tensor, list[str], np.ndarray | None]:
-    """Read a CSV written by :func:`save_truth_csv` (or ``training.mocap.save_csv``).
+    """Read a mocap CSV (:func:`torchpf.io.read_mocap_csv`).
 
     Returns:
         angles (T, D) float64 tensor, dof names, times (T,) or None when there is no ``time`` column.
     """
-    path = os.fspath(path)
-    with open(path, newline="", encoding="utf-8") as f:
-        rows = list(csv.reader(f))
-    if not rows:
-        raise ValueError(f"{path}: empty file, expected a header row")
-    header = [h.strip() for h in rows[0]]
-    has_time = bool(header) and header[0] == "time"
-    names = header[1:] if has_time else header
-    data = []
-    for i, row in enumerate(rows[1:], start=2):
-        if not row:
-            continue
-        if len(row) != len(header):
-            raise ValueError(f"{path}: line {i} has {len(row)} fields, the header {len(header)}")
-        try:
-            data.append([float(x) for x in row])
-        except ValueError:
-            raise ValueError(f"{path}: line {i} holds a non-number") from None
-    arr = np.asarray(data, dtype=np.float64).reshape(-1, len(header))
-    times = arr[:, 0] if has_time else None
-    angles = arr[:, 1:] if has_time else arr
-    return torch.from_numpy(np.ascontiguousarray(angles)), names, times
+    names, times, values = read_mocap_csv(path)
+    return torch.from_numpy(np.ascontiguousarray(values)), names, times
 
 
 # ---------------------------------------------------------------------- rendering
@@ -375,14 +343,14 @@ def write_sequence(path, seq: SequenceData) -> None:
             ok, buf = cv2.imencode(".png", np.where(np.asarray(m) > 127, 255, 0).astype(np.uint8))
             if not ok:
                 raise OSError(f"cannot encode mask {name}/{t:06d}.png")
-            _atomic_write(os.path.join(root, "masks", name, f"{t:06d}.png"), buf.tobytes())
+            write_atomic(os.path.join(root, "masks", name, f"{t:06d}.png"), buf.tobytes())
     if seq.points is not None:
         for t, pts in enumerate(seq.points):
             if pts is None:
                 continue
             b = io.BytesIO()
             np.save(b, np.asarray(pts, dtype=np.float32))
-            _atomic_write(os.path.join(root, "points", f"{t:06d}.npy"), b.getvalue())
+            write_atomic(os.path.join(root, "points", f"{t:06d}.npy"), b.getvalue())
     if seq.truth is not None:
         save_truth_csv(os.path.join(root, "truth.csv"), seq.truth, seq.dof_names, seq.times)
     if seq.keypoints is not None:
@@ -393,7 +361,7 @@ def write_sequence(path, seq: SequenceData) -> None:
             joints=np.asarray(seq.keypoint_joints or []),
             cameras=np.asarray(names),
         )
-        _atomic_write(os.path.join(root, "keypoints.npz"), b.getvalue())
+        write_atomic(os.path.join(root, "keypoints.npz"), b.getvalue())
 
 
 def _frame_index(name: str, path: str) -> int:

@@ -163,7 +163,7 @@ def test_truth_csv_roundtrip(tmp_path):
     got, names, times = load_truth_csv(tmp_path / "u.csv")
     assert times is None and torch.equal(got, angles)
     (tmp_path / "bad.csv").write_text("time,a\n0.0,1.0,2.0\n")
-    with pytest.raises(ValueError, match="line 2"):
+    with pytest.raises(ValueError, match=r"bad\.csv:2: expected 2 fields"):
         load_truth_csv(tmp_path / "bad.csv")
 
 
