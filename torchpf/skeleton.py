@@ -175,6 +175,7 @@ class Skeleton(nn.Module):
     * ``joint_names`` (J): the body joints, parents before children; ``parents`` (J) index into them, ``-1``
       for the root.
     * ``lower``, ``upper`` (D,): joint limits (rad or m; +-inf where the URDF gives none).
+    * ``dof_joints`` (D): for each DOF, the body joint it moves (the joint at the end of its run).
     * ``bones`` (C): (parent, child) joint indices of the capsules; ``radii`` (C,) in metres.
     """
 
@@ -351,11 +352,17 @@ class Skeleton(nn.Module):
         self._body_rows_identity = bool(torch.equal(self._body_rows, torch.arange(len(order))))
         self.parents: list[int] = []
         self._bone_has_prismatic: list[bool] = []
-        for i in body:
-            j, kinds = frames[i].parent, {frames[i].joint_type}
-            while j >= 0 and j not in body_set:
+        # dof_joints[d]: the body joint whose run (the URDF joints between it and its parent joint) holds d
+        self.dof_joints: list[int] = [-1] * len(self.dof_names)
+        for b, i in enumerate(body):
+            j, kinds = i, set()
+            while True:
                 kinds.add(frames[j].joint_type)
+                if frames[j].dof >= 0:
+                    self.dof_joints[frames[j].dof] = b
                 j = frames[j].parent
+                if j < 0 or j in body_set:
+                    break
             self.parents.append(body.index(j) if j >= 0 else -1)
             self._bone_has_prismatic.append(_PRISMATIC in kinds)
 

@@ -139,30 +139,10 @@ def body_partition(skeleton) -> list[list[int]]:
         best = max(children[j], key=lambda c: float(rest[subtree(c), 2].max()))
         limbs += [subtree(c) for c in children[j] if c != best]
         j = best
-    joint_dofs = _joint_dofs(skeleton)
-    groups = [[d for j in torso for d in joint_dofs[j]]]
-    groups += [[d for j in limb for d in joint_dofs[j]] for limb in limbs]
+    owner = skeleton.dof_joints
+    groups = [[d for d, j in enumerate(owner) if j in torso]]
+    groups += [[d for d, j in enumerate(owner) if j in limb] for limb in limbs]
     return [g for g in groups if g]
-
-
-def _joint_dofs(skeleton) -> list[list[int]]:
-    """DOF indices moved by each body joint's own run (the DOFs between it and its parent joint)."""
-    chain = skeleton.chain
-    dof_index = {n: i for i, n in enumerate(skeleton.dof_names)}
-    owner = {}
-    body = set(skeleton.joint_names)
-
-    def visit(frame, current):
-        name = frame.name.strip("\n")
-        pending = current + ([frame.joint.name] if frame.joint.joint_type != "fixed" else [])
-        if name in body:
-            owner[name] = pending
-            pending = []
-        for child in frame.children:
-            visit(child, pending)
-
-    visit(chain._root, [])
-    return [[dof_index[d] for d in owner.get(n, []) if d in dof_index] for n in skeleton.joint_names]
 
 
 @dataclass

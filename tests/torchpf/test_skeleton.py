@@ -263,3 +263,20 @@ def test_cuda_matches_cpu():
     torch.testing.assert_close(gpu.cpu(), skel.fk(theta), rtol=0, atol=1e-5)
     ends, radii = skel.capsules(theta.cuda())
     assert ends.device.type == "cuda" and radii.device.type == "cuda"
+
+
+def test_dof_joints_name_the_moved_joint():
+    human = Skeleton.from_urdf(path("human.urdf"))
+    for d, j in zip(human.dof_names, human.dof_joints, strict=True):
+        assert d.rsplit("_", 1)[0] == human.joint_names[j]  # "LeftLeg_Xrotation" moves "LeftLeg"
+    odd = Skeleton.from_urdf(ODD_URDF)
+    owner = {d: odd.joint_names[j] for d, j in zip(odd.dof_names, odd.dof_joints, strict=True)}
+    assert owner == {
+        "px": "torso",
+        "py": "torso",
+        "yaw": "torso",
+        "shoulder": "arm",
+        "roll": "hand",
+        "wrist": "hand",
+        "hip": "leg",
+    }
