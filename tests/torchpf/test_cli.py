@@ -1,0 +1,111 @@
+"""`python -m torchpf track` / `evaluate` on a small synthetic sequence directory."""
+
+import subprocess
+import sys
+
+import pytest
+import torch
+
+from torchpf import Skeleton
+from torchpf.__main__ import main
+from torchpf.assets import path
+from torchpf.camera import camera_ring
+from torchpf.io import read_mocap_csv, write_mocap_csv
+from torchpf.synth import synthesize, write_sequence
+from training.synthetic import generate
+
+
+@pytest.fixture(scope="module")
+def seq_dir(tmp_path_factory):
+    skel = Skeleton.from_urdf(path("human.urdf"))
+    angles = generate("wave", 8, 15.0, seed=2).angles
+    cams = camera_ring(2, radius=4.0, width=64, height_px=48, target=(0.0, 0.0, 1.0))
+    root = tmp_path_factory.mktemp("cli") / "seq"
+    write_sequence(root, synthesize(skel, angles, cams, fps=15.0))
+    return root
+
+
+def test_track_then_evaluate(seq_dir, tmp_path, capsys):
+    out = tmp_path / "track.csv"
+    args = [
+        "track",
+        str(seq_dir),
+        "--skeleton",
+        str(path("human.urdf")),
+        "--out",
+        str(out),
+        "--filter",
+        "sir",
+        "--particles",
+        "120",
+        "--dynamics",
+        "constant_velocity",
+        "--likelihood",
+        "silhouette=1",
+        "--likelihood",
+        "dual_silhouette=0.5",
+        "--no-progress",
+        "--seed",
+        "1",
+    ]
+    assert main(args) == 0
+    printed = capsys.readouterr().out
+    assert "tracked 8 frames with sir" in printed and "RMSE" in printed
+    skel = Skeleton.from_urdf(path("human.urdf"))
+    names, times, values = read_mocap_csv(out, expected_dof_names=skel.dof_names)
+    assert values.shape == (8, 96) and times[1] == pytest.approx(1 / 15)
+
+    # two "runs": the track and the truth itself (zero error); dispersion is half their distance
+    assert (
+        main(
+            [
+                "evaluate",
+                str(out),
+                str(seq_dir / "truth.csv"),
+                "--truth",
+                str(seq_dir / "truth.csv"),
+                "--skeleton",
+                str(path("human.urdf")),
+            ]
+        )
+        == 0
+    )
+    table = capsys.readouterr().out
+    assert "2 run(s), 8 frames, 38 joints" in table
+    for key in ("rmse", "bias", "dispersion", "failure_rate", "mpjpe", "angle_mse"):
+        assert f"| {key} |" in table
+
+
+def test_errors_are_one_line(seq_dir, tmp_path, capsys):
+    urdf = str(path("human.urdf"))
+    assert (
+        main(["track", str(tmp_path / "nowhere"), "--skeleton", urdf, "--out", str(tmp_path / "t.csv")]) == 2
+    )
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "sequence directory not found" in err
+    bad = tmp_path / "bad.csv"
+    write_mocap_csv(bad, ["a", "b"], torch.zeros(3, 2))
+    assert main(["evaluate", str(bad), "--truth", str(seq_dir / "truth.csv"), "--skeleton", urdf]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "bad.csv" in err and err.count("\n") == 0
+    assert (
+        main(
+            [
+                "track",
+                str(seq_dir),
+                "--skeleton",
+                urdf,
+                "--out",
+                str(tmp_path / "t.csv"),
+                "--likelihood",
+                "silhouette=heavy",
+            ]
+        )
+        == 2
+    )
+    assert "weight must be a number" in capsys.readouterr().err
+
+
+def test_module_entry_point_help():
+    res = subprocess.run([sys.executable, "-m", "torchpf", "track", "--help"], capture_output=True, text=True)
+    assert res.returncode == 0 and "--particles" in res.stdout
