@@ -72,7 +72,7 @@ def table5_sigma(skeleton, fps: float = TABLE5_FPS, scale: float = 1.0) -> torch
 
 def random_walk(skeleton, *, fps: float = TABLE5_FPS, scale: float = 1.0, **options):
     """Angular random walk with Table 5 stds, restricted to the joint limits (Hauberg eq. 3)."""
-    from priors.motion import AngularRandomWalk
+    from priors.random_walk import AngularRandomWalk
 
     return AngularRandomWalk(
         table5_sigma(skeleton, fps, scale), lower=skeleton.lower, upper=skeleton.upper, **options
