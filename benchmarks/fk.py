@@ -3,8 +3,9 @@
     python benchmarks/fk.py [--sizes 1000 10000] [--repeats 15] [--device cpu]
 
 Skeleton: ``torchpf/assets/human.urdf`` (the CMU joint tree: floating root + 30 ball joints, 96 DOFs,
-38 body-joint positions, 134 pytorch-kinematics frames). Both sides get the same random in-limit poses;
-timings interleave the two implementations and take the median so that machine noise hits both alike.
+38 body-joint positions, 104 pytorch-kinematics frames). Both sides get the same random in-limit poses;
+timings interleave the two implementations and report the best of ``--repeats`` (the least disturbed run) so
+that machine noise hits both alike.
 """
 
 from __future__ import annotations
@@ -12,7 +13,6 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import statistics
 import time
 
 import torch
@@ -28,13 +28,28 @@ def _time(fn, sync) -> float:
     return time.perf_counter() - t0
 
 
+def _passes(skel, chain, theta):
+    """name -> (ours, theirs): zero-argument callables timing one FK pass on ``theta``."""
+    th_grad = theta.clone().requires_grad_(True)
+    return {
+        "forward": (lambda: skel.fk(theta), lambda: chain.forward_kinematics_tensor(theta)),
+        "forward+backward": (
+            lambda: skel.fk(th_grad).sum().backward(),
+            lambda: chain.forward_kinematics_tensor(th_grad)[..., :3, 3].sum().backward(),
+        ),
+    }
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", type=int, nargs="+", default=[1000, 10000])
     ap.add_argument("--repeats", type=int, default=15)
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--dtype", default="float32", choices=["float32", "float64"])
+    ap.add_argument("--threads", type=int, default=None, help="torch intra-op threads (default: torch's)")
     args = ap.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
     device, dtype = torch.device(args.device), getattr(torch, args.dtype)
     sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
 
@@ -63,21 +78,14 @@ def main() -> None:
         )
         diff = (skel.fk(theta) - ref).abs().max().item()
 
-        th_grad = theta.clone().requires_grad_(True)
-        passes = {
-            "forward": (lambda: skel.fk(theta), lambda: chain.forward_kinematics_tensor(theta)),
-            "forward+backward": (
-                lambda: skel.fk(th_grad).sum().backward(),
-                lambda: chain.forward_kinematics_tensor(th_grad)[..., :3, 3].sum().backward(),
-            ),
-        }
+        passes = _passes(skel, chain, theta)
         for name, (ours, theirs) in passes.items():
             ours(), theirs()  # warm-up
             a, b = [], []
             for _ in range(args.repeats):
                 a.append(_time(ours, sync))
                 b.append(_time(theirs, sync))
-            ta, tb = statistics.median(a), statistics.median(b)
+            ta, tb = min(a), min(b)
             print(f"| {n:,} | {name} | {n / ta:,.0f} | {n / tb:,.0f} | {tb / ta:.1f}x | {diff:.1e} |")
 
 
