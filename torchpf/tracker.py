@@ -13,7 +13,9 @@ Pieces by name:
 * filters (:data:`FILTERS`): ``sir`` (= ``condensation``), ``qrs``, ``partitioned``, ``partitioned_qrs``,
   ``apf``, ``mcmc`` (Fontmarty Tables 1-4, Brubaker Alg. 1-4). ``n_particles`` is the number of likelihood
   evaluations per frame for every filter (Fontmarty's equal-budget protocol): the APF runs
-  ``n_particles / L`` particles per layer, the partitioned filter ``n_particles / M`` per stage.
+  ``n_particles / L`` particles per layer, the partitioned filter ``n_particles / M`` per stage, the MCMC
+  filter ``n_particles / (1 + R (L + 1))`` particles for R HMC moves of L leapfrog steps (gradients counted
+  as evaluations).
 * motion priors: any object following :mod:`torchpf.filters.protocols`, or a name registered under the
   ``torchpf.dynamics`` entry-point group (the ``priors`` package registers ``random_walk``,
   ``constant_velocity``, ``damped``, ``action``...). torchpf itself never imports ``priors``.
@@ -63,6 +65,17 @@ LIKELIHOODS: dict[str, type] = {
 }
 FILTERS = ("sir", "condensation", "qrs", "partitioned", "partitioned_qrs", "apf", "mcmc")
 DYNAMICS_GROUP = "torchpf.dynamics"
+
+
+def _diffusion_std(dynamics) -> Any:
+    """The step std of a motion prior (``std`` or ``sigma``, looking inside wrapping dynamics), else None."""
+    while dynamics is not None:
+        for name in ("std", "sigma"):
+            value = getattr(dynamics, name, None)
+            if value is not None:
+                return value
+        dynamics = getattr(dynamics, "dynamics", None)
+    return None
 
 
 def available_dynamics() -> dict[str, Any]:
@@ -329,7 +342,7 @@ class Tracker(nn.Module):
             betas = opts.get("betas", (0.1, 0.4, 1.0))
             layers = opts.get("n_layers") or (3 if isinstance(betas, str) else len(betas))
             if "diffusion_std" not in opts and getattr(self.dynamics, "std", None) is None:
-                opts["diffusion_std"] = getattr(self.dynamics, "sigma", None)
+                opts["diffusion_std"] = _diffusion_std(self.dynamics)
             return AnnealedParticleFilter(
                 self.dynamics,
                 self.likelihood,
@@ -338,8 +351,15 @@ class Tracker(nn.Module):
                 **common,
                 **opts,
             )
+        # each HMC move of L leapfrog steps costs L + 1 likelihood gradients (Brubaker Alg. 4)
+        per_particle = 1 + opts.get("n_moves", 2) * (opts.get("n_leapfrog", 5) + 1)
         return MCMCParticleFilter(
-            self.dynamics, self.likelihood, self.proposal, n_particles=n, **common, **opts
+            self.dynamics,
+            self.likelihood,
+            self.proposal,
+            n_particles=max(1, n // per_particle),
+            **common,
+            **opts,
         )
 
     # ------------------------------------------------------------------ running

@@ -115,3 +115,31 @@ def test_config_and_errors(scene, tmp_path):
     bad.write_text("filter: [unclosed\n")
     with pytest.raises(ValueError, match="bad.yaml"):
         Tracker.from_config(bad, skeleton=skel)
+
+
+def test_mcmc_and_wrapped_dynamics_budget(scene):
+    skel, cams, seq, _ = scene
+    mcmc = Tracker(
+        skel,
+        cams,
+        dynamics=walk(),
+        filter="mcmc",
+        n_particles=390,
+        progress=False,
+        filter_options={"n_moves": 2, "n_leapfrog": 5},
+    )
+    assert mcmc.filter.n_particles == 30  # 390 / (1 + 2 x 6)
+
+    class Wrapper(torch.nn.Module):  # like ActionConstrained: the step std lives on the wrapped prior
+        def __init__(self):
+            super().__init__()
+            self.dynamics = walk(0.02)
+
+        def sample(self, x, generator=None):
+            return self.dynamics.sample(x, generator)
+
+        def log_prob(self, x_new, x_old):
+            return self.dynamics.log_prob(x_new, x_old)
+
+    apf = Tracker(skel, cams, dynamics=Wrapper(), filter="apf", n_particles=90, progress=False)
+    torch.testing.assert_close(torch.as_tensor(apf.filter.diffusion_std), torch.full((96,), 0.02))
