@@ -1,0 +1,928 @@
+"""Evaluation harness: the Fontmarty et al. protocol for particle-filter human motion trackers.
+
+What it does
+------------
+Fontmarty, Danès & Lerasle ("Evaluations of particle filter based human motion visual trackers", §3.3-5)
+compare CONDENSATION (SIR), QRS, PARTITIONED, PARTITIONED QRS and the APF on multi-camera silhouette
+sequences, at **equal numbers of likelihood evaluations** per frame ``N in {100, 250, 500, 1000, 1500}`` and
+over ``R`` runs of each stochastic filter, with four criteria and a ranking per criterion (their Tables 6-7).
+This script runs that protocol with :class:`torchpf.Tracker`:
+
+* sequences synthesised from real CMU mocap clips (``../shared/mocap/cmu``: a walk and a run, each rendered on
+  the clip's own converted skeleton, i.e. the model fits the subject as in the paper's synthetic study) and
+  from the embedded generator (``wave`` - the paper's "arm waving" - and ``walk`` on ``human.urdf``). Three
+  cameras in a triangle around the subject (:func:`torchpf.camera.camera_ring`), low-resolution silhouettes
+  with segmentation noise (random erosion/dilation and speckle). Frames are subsampled to ``--fps`` and the
+  mean horizontal drift of the root is removed ("treadmill") so the body stays in view of the fixed cameras;
+* the Fontmarty composite likelihood (silhouette ``sigma_s1 = 0.1`` + dual silhouette ``sigma_s2 = 0.07``, and
+  optionally the skin-blob cue on the head and hands, ``sigma_skin = 5`` px) and a Gaussian random walk with
+  the per-joint-group standard deviations of Fontmarty Table 5 (given at 5 Hz; a random walk's variance grows
+  linearly in time, so they become ``std sqrt(5 / fps)`` per frame): by default the registered
+  ``random_walk`` prior of the ``priors`` package (truncated to the joint limits, clavicles/fingers frozen),
+  else (``--dynamics table5``) :func:`table5_std` here;
+* every filter is initialised from the first ground-truth frame and gets the same budget ``N``: SIR/QRS run
+  ``N`` particles, the APF 3 layers of ``N/3``, the partitioned filters ``M`` stages of ``N/M`` (``M = 5``:
+  torso then each limb, :func:`torchpf.tracker.body_partition`), the MCMC filter ``N / (1 + moves (L + 1))``
+  particles, each HMC move costing ``L + 1`` likelihood gradients (counted as evaluations; a gradient costs
+  more wall time, which the time column shows).
+
+Criteria (Fontmarty eq. 3-6, :mod:`torchpf.metrics`), over ``J`` evaluated joints, ``K`` frames and ``R``
+runs, ``m_j^{t_k}`` the true and ``m_j^{k,r}`` the estimated (MMSE) position of joint ``j``::
+
+    RMSE       (eq. 3)  1/J sum_j sqrt( 1/(K R) sum_k sum_r |m_j^{t_k} - m_j^{k,r}|^2 )
+    bias       (eq. 4)  1/J sum_j | 1/K sum_k ( m_j^{t_k} - 1/R sum_r m_j^{k,r} ) |
+    dispersion (eq. 5)  1/J sum_j sqrt( 1/(K R) sum_k sum_r |m_j^{k,r} - 1/R sum_r' m_j^{k,r'}|^2 )
+    failure    (eq. 6)  1/(R J K) sum_{r,j,k} [ |m_j^{t_k} - m_j^{k,r}|^2 > T_failure^2 ],  T_failure = 0.25 m
+
+The ``J`` joints are those of Fontmarty's model (pelvis, hips, knees, ankles, neck, head, shoulders, elbows,
+wrists; ``--joints all`` takes every skeleton joint). All ``K`` tracked frames count, frame 0 included.
+
+Ranks (Tables 6-7): in every (sequence, N) cell the filters are ranked per criterion (1 = lowest value; ties
+share the mean rank); a filter's rank for a criterion is the rank of its mean cell rank, and the table is
+sorted by the mean of its four criterion ranks. Values shown next to the ranks are means over the cells.
+
+How to run
+----------
+::
+
+    python benchmarks/evaluate.py           # default: 4 sequences, 5 filters, N 100 500, R 2 (minutes)
+    python benchmarks/evaluate.py --quick   # smoke run (seconds)
+    python benchmarks/evaluate.py --particles 100 500 1500 --runs 3 --frames 15
+    python benchmarks/evaluate.py --full    # the paper's grid: N 100..1500, R 10, all 6 filters (hours)
+    python benchmarks/evaluate.py --sequences cmu:16_46,generator:wave --filters apf,partitioned_qrs
+
+Outputs in ``--out`` (default ``out/evaluate``): ``table.md`` (printed too), ``results.csv`` (one row per
+sequence x filter x N x run, then one ``aggregate`` row per sequence x filter x N), ``frames.csv`` (mean
+joint error per frame and run), ``config.json``, and plots ``fig8_<seq>.png`` / ``fig8_all.png`` (criteria
+vs N, like Fontmarty Fig. 8) and ``fig15_<seq>.png`` (error vs frame for each N per filter, failure rate vs
+N in log scale, like Fig. 15).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import json
+import math
+import os
+import sys
+import time
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+REPO = Path(__file__).resolve().parents[1]
+if str(REPO) not in sys.path:  # run as a script from anywhere: `training` is a top-level package of the repo
+    sys.path.insert(0, str(REPO))
+
+from torchpf import Skeleton, metrics  # noqa: E402
+from torchpf.assets import path as asset_path  # noqa: E402
+from torchpf.camera import camera_ring  # noqa: E402
+from torchpf.observations import DistanceMaps  # noqa: E402
+from torchpf.proposals import GaussianRandomWalk  # noqa: E402
+from torchpf.synth import SynthOptions, synthesize  # noqa: E402
+from torchpf.tracker import Tracker, available_dynamics, body_partition, make_dynamics  # noqa: E402
+
+FILTER_LABELS = {
+    "sir": "CONDENSATION",
+    "qrs": "QRS",
+    "partitioned": "PARTITIONED",
+    "partitioned_qrs": "PARTITIONED QRS",
+    "apf": "APF",
+    "mcmc": "MCMC",
+}
+FONTMARTY_FILTERS = ("sir", "qrs", "partitioned", "partitioned_qrs", "apf")
+CMU_DIR = (REPO / ".." / "shared" / "mocap" / "cmu").resolve()
+CMU_SCALE = 0.056444  # metres per CMU BVH unit
+DEFAULT_ITEMS = {"cmu": ("07_01", "35_24"), "generator": ("wave", "walk")}  # a walk and a run; wave, walk
+
+# Fontmarty Table 5: random-walk std per joint group (m, rad per frame at the paper's 5 Hz).
+TABLE5 = {
+    "root_translation": 0.07,
+    "root_rotation": 0.05,
+    "shoulder": 0.1,
+    "elbow": 0.3,
+    "hip": 0.1,
+    "knee": 0.1,
+}
+TABLE5_FPS = 5.0
+TABLE5_JOINTS = {
+    "LeftArm": "shoulder",
+    "RightArm": "shoulder",
+    "LeftForeArm": "elbow",
+    "RightForeArm": "elbow",
+    "LeftUpLeg": "hip",
+    "RightUpLeg": "hip",
+    "LeftLeg": "knee",
+    "RightLeg": "knee",
+}
+# Joints that Fontmarty's 22-DOF model does not have: the spine/neck/head chain gets a small diffusion (it
+# moves a little in walks and runs), everything else (clavicles, hip joints, wrists, hands, feet, toes) a
+# tiny one so it stays near its initial value, as a rigid part of the paper's model would.
+SPINE_JOINTS = ("LowerBack", "Spine", "Spine1", "Neck", "Neck1", "Head")
+SPINE_STD, OTHER_STD = 0.02, 0.01
+# The joints of Fontmarty's body model, on which the criteria are computed by default.
+EVAL_JOINTS = (
+    "Hips",
+    "LeftUpLeg",
+    "LeftLeg",
+    "LeftFoot",
+    "RightUpLeg",
+    "RightLeg",
+    "RightFoot",
+    "Neck",
+    "Head",
+    "LeftArm",
+    "LeftForeArm",
+    "LeftHand",
+    "RightArm",
+    "RightForeArm",
+    "RightHand",
+)
+# Criteria of Tables 6-7, in their column order: (result key, column title). All are "lower is better".
+CRITERIA = (
+    ("rmse", "Accuracy"),
+    ("dispersion", "Dispersion"),
+    ("failure_rate", "Failure rate"),
+    ("bias", "Bias"),
+)
+
+
+# ================================================================================================ config
+@dataclass
+class EvalConfig:
+    """Everything one evaluation depends on (written to ``config.json``)."""
+
+    sequences: tuple[str, ...] = ("cmu", "generator")  # sources, or "source:item" (cmu:07_01, generator:wave)
+    filters: tuple[str, ...] = FONTMARTY_FILTERS
+    particles: tuple[int, ...] = (100, 500)  # likelihood evaluations per frame, N
+    runs: int = 2  # R
+    frames: int = 12  # K (a short clip gives fewer)
+    fps: float = 15.0  # tracking frame rate; mocap is subsampled to it
+    mask_size: tuple[int, int] = (80, 60)  # (width, height) of the silhouettes
+    morph_px: int = 1  # segmentation noise: random erosion/dilation radius (px)
+    speckle: float = 0.01  # segmentation noise: share of flipped pixels
+    cues: tuple[str, ...] = ("silhouette", "dual_silhouette")  # + "skin"
+    threshold: float = 0.25  # T_failure (m)
+    # "random_walk" (the registered prior), "table5" (built here) or "auto" (the former when registered)
+    dynamics: str = "auto"
+    dynamics_scale: float = 1.0  # multiplies the Table 5 stds (after their 5 Hz -> fps rescaling)
+    joints: str = "body"  # "body" (EVAL_JOINTS) or "all"
+    mcmc_moves: int = 1
+    mcmc_leapfrog: int = 3
+    camera_radius: float = 4.0
+    cmu_dir: str = str(CMU_DIR)
+    seed: int = 0
+
+    def __post_init__(self):
+        self.sequences = tuple(self.sequences)
+        self.filters = tuple(self.filters)
+        self.particles = tuple(int(n) for n in self.particles)
+        self.cues = tuple(self.cues)
+        self.mask_size = tuple(int(v) for v in self.mask_size)
+        unknown = [f for f in self.filters if f not in FILTER_LABELS]
+        if unknown:
+            raise ValueError(f"unknown filter(s) {unknown}; choose from {list(FILTER_LABELS)}")
+        if not self.filters or not self.particles or self.runs < 1 or self.frames < 2:
+            raise ValueError("need at least one filter, one N, runs >= 1 and frames >= 2")
+        if min(self.particles) < 1:
+            raise ValueError(f"particle budgets must be positive, got {self.particles}")
+        bad_cues = [c for c in self.cues if c not in ("silhouette", "dual_silhouette", "skin")]
+        if bad_cues or not self.cues:
+            raise ValueError(f"unknown cue(s) {bad_cues}; choose from silhouette, dual_silhouette, skin")
+        if self.dynamics not in ("auto", "table5", "random_walk"):
+            raise ValueError(f"dynamics must be auto, table5 or random_walk, got {self.dynamics!r}")
+        if self.joints not in ("body", "all"):
+            raise ValueError(f"joints must be 'body' or 'all', got {self.joints!r}")
+
+
+QUICK = {"particles": (60, 180), "runs": 2, "frames": 6, "mask_size": (64, 48)}
+QUICK_SEQUENCES = ("cmu:07_01", "generator:wave")
+FULL = {
+    "particles": (100, 250, 500, 1000, 1500),
+    "runs": 10,
+    "frames": 30,
+    "filters": tuple(FILTER_LABELS),
+}
+
+
+# ================================================================================================ sequences
+@dataclass(eq=False)
+class EvalSequence:
+    """A synthetic multi-camera sequence with its ground truth.
+
+    Fields: ``angles`` (K, D) true poses in ``skeleton.dof_names`` order; ``frames`` K observations;
+    ``joints`` indices of the evaluated joints; ``truth`` (K, J, 3) their true positions (m).
+    """
+
+    name: str
+    source: str
+    action: str
+    skeleton: Skeleton
+    cameras: object
+    frames: list
+    angles: torch.Tensor
+    fps: float
+    joints: list[int]
+    truth: torch.Tensor = field(init=False)
+
+    def __post_init__(self):
+        with torch.no_grad():
+            self.truth = self.skeleton.fk(self.angles.to(torch.float64))[:, self.joints]
+
+
+def _cmu_index(cmu_dir: Path) -> dict[str, str]:
+    """Clip stem -> description ("walk", "run/jog") from ``INDEX.tsv`` (empty if absent)."""
+    index = cmu_dir / "INDEX.tsv"
+    if not index.is_file():
+        return {}
+    with open(index, encoding="utf-8") as f:
+        return {Path(r["file"]).stem: r["description"] for r in csv.DictReader(f, delimiter="\t")}
+
+
+def treadmill(skeleton: Skeleton, angles: torch.Tensor) -> torch.Tensor:
+    """Remove the least-squares straight-line drift of the root's horizontal translation DOFs.
+
+    The fixed cameras of Fontmarty's set-up look at a small volume; a walk or run of 2 m per second would
+    leave it (and the random-walk prior could not keep up with 0.1 m per frame of steady drift). What remains
+    is the in-place part of the motion (sway, bob), centred on the origin. ``angles`` (K, D) -> (K, D).
+    """
+    out = angles.clone()
+    rest = skeleton.fk(torch.zeros(angles.shape[-1], dtype=torch.float64))
+    root = skeleton.parents.index(-1)
+    t = torch.arange(len(angles), dtype=angles.dtype)
+    t = t - t.mean()
+    for d, name in enumerate(skeleton.dof_names):
+        if "position" not in name:
+            continue
+        unit = torch.zeros(angles.shape[-1], dtype=torch.float64)
+        unit[d] = 1.0
+        axis = skeleton.fk(unit)[root] - rest[root]
+        if abs(float(axis[2])) > 1e-6:  # the vertical translation (bob) is kept
+            continue
+        x = out[:, d]
+        slope = (t * (x - x.mean())).sum() / t.square().sum().clamp_min(1e-12)
+        out[:, d] = x - x.mean() - slope * t
+    return out
+
+
+def _joint_indices(skeleton: Skeleton, which: str) -> list[int]:
+    names = list(skeleton.joint_names)
+    if which == "all":
+        return list(range(len(names)))
+    missing = [j for j in EVAL_JOINTS if j not in names]
+    if missing:
+        raise ValueError(f"the skeleton lacks the evaluated joints {missing}; use --joints all")
+    return [names.index(j) for j in EVAL_JOINTS]
+
+
+def skin_maps(skeleton, angles, cameras, mask_size, rng: np.random.Generator, noise_px: float = 0.5):
+    """Synthetic skin-blob distance images (Fontmarty §3.2.3): disks at the projected head centre and hands.
+
+    Returns K :class:`~torchpf.observations.DistanceMaps` (V, H, W); blob centres get ``noise_px`` of
+    Gaussian noise, blob radius ~4% of the image width (a hand at 4 m).
+    """
+    W, H = mask_size
+    names = list(skeleton.joint_names)
+    centres = [
+        (names.index("Head"), names.index("Head_end")),
+        (names.index("LeftHand"),),
+        (names.index("RightHand"),),
+    ]
+    radius = max(1.0, 0.04 * W)
+    vv, uu = np.mgrid[0:H, 0:W]
+    maps = []
+    with torch.no_grad():
+        joints = skeleton.fk(angles.to(torch.float64))
+    for k in range(len(angles)):
+        marks = torch.stack([joints[k, list(c)].mean(0) for c in centres])
+        feats = []
+        for cam in cameras.cameras:
+            uv = cam.resized(W, H).project(marks).numpy() + rng.normal(0.0, noise_px, (len(centres), 2))
+            f = np.zeros((H, W), dtype=bool)
+            for u, v in uv:
+                f |= (uu - u) ** 2 + (vv - v) ** 2 <= radius**2
+            feats.append(f)
+        maps.append(DistanceMaps.from_features(feats))
+    return maps
+
+
+def make_sequence(source: str, item: str, cfg: EvalConfig) -> EvalSequence:
+    """One synthetic sequence: ``source`` "cmu" (``item`` a clip stem) or "generator" (``item`` an action)."""
+    if source == "cmu":
+        from training.mocap import load_bvh
+
+        clip = Path(cfg.cmu_dir) / f"{item}.bvh"
+        if not clip.is_file():
+            raise FileNotFoundError(f"no CMU clip {clip}; pass --cmu-dir or --sequences generator")
+        # The clip's own skeleton: CMU angle tracks on human.urdf would cross the legs (CMU thigh bones slant
+        # outwards, human.urdf's hang straight down), so render and track on the converted skeleton.
+        skel, motion = load_bvh(clip, scale=CMU_SCALE)
+        step = max(1, round(motion.fps / cfg.fps))
+        angles = motion.angles[1::step][: cfg.frames]  # frame 0 of a CMU clip is a rest pose
+        fps = motion.fps / step
+        action = _cmu_index(Path(cfg.cmu_dir)).get(item, "mocap").replace("/", "-")
+    elif source == "generator":
+        from training.synthetic import generate, sample_style
+
+        skel = Skeleton.from_urdf(asset_path("human.urdf"))
+        # bone_scale 1: the performer is exactly the tracked template, as in the paper's synthetic study.
+        style = dataclasses.replace(
+            sample_style(item, torch.Generator().manual_seed(cfg.seed)), bone_scale=1.0
+        )
+        angles = generate(item, cfg.frames, cfg.fps, style=style, seed=cfg.seed).angles
+        fps, action = cfg.fps, item
+    else:
+        raise ValueError(f"unknown sequence source {source!r}; choose cmu or generator")
+    angles = treadmill(skel, angles.to(torch.float64))
+    with torch.no_grad():
+        hip_height = float(skel.fk(angles)[:, skel.parents.index(-1), 2].mean())
+    cams = camera_ring(
+        3,
+        radius=cfg.camera_radius,
+        height=1.5,
+        target=(0.0, 0.0, hip_height),
+        width=cfg.mask_size[0],
+        height_px=cfg.mask_size[1],
+    )
+    opts = SynthOptions(morph_px=cfg.morph_px, speckle=cfg.speckle)
+    seq = synthesize(skel, angles, cams, mask_size=cfg.mask_size, options=opts, fps=fps, seed=cfg.seed)
+    frames = [seq.frame(k) for k in range(len(seq))]
+    if "skin" in cfg.cues:
+        maps = skin_maps(skel, angles, cams, cfg.mask_size, np.random.default_rng(cfg.seed + 1))
+        frames = [dataclasses.replace(f, skin=m) for f, m in zip(frames, maps, strict=True)]
+    name = f"{source}-{item}" if source == "generator" else f"cmu-{item}-{action}"
+    return EvalSequence(
+        name=name,
+        source=source,
+        action=action,
+        skeleton=skel,
+        cameras=cams,
+        frames=frames,
+        angles=angles,
+        fps=float(fps),
+        joints=_joint_indices(skel, cfg.joints),
+    )
+
+
+def sequence_specs(cfg: EvalConfig) -> list[tuple[str, str]]:
+    """``cfg.sequences`` expanded to (source, item) pairs: a bare source takes its default items."""
+    specs = []
+    for entry in cfg.sequences:
+        source, _, item = entry.partition(":")
+        if source not in DEFAULT_ITEMS:
+            raise ValueError(f"unknown sequence source {source!r} in {entry!r}; choose cmu or generator")
+        specs += [(source, item)] if item else [(source, i) for i in DEFAULT_ITEMS[source]]
+    return specs
+
+
+# ================================================================================================ filters
+def table5_std(skeleton: Skeleton, fps: float = TABLE5_FPS, scale: float = 1.0) -> torch.Tensor:
+    """(D,) per-DOF random-walk std of Fontmarty Table 5 (groups by CMU joint name) at ``fps``.
+
+    A random walk's variance grows linearly with time, so the paper's 5 Hz stds become
+    ``std * sqrt(5 / fps)`` per frame (the registered ``random_walk`` prior uses the same rule), times
+    ``scale``.
+    """
+    root = skeleton.joint_names[skeleton.parents.index(-1)]
+    std = torch.full((len(skeleton.dof_names),), OTHER_STD, dtype=torch.float64)
+    for d, name in enumerate(skeleton.dof_names):
+        joint = name.rsplit("_", 1)[0]
+        if joint == root:
+            std[d] = TABLE5["root_translation" if "position" in name else "root_rotation"]
+        elif joint in TABLE5_JOINTS:
+            std[d] = TABLE5[TABLE5_JOINTS[joint]]
+        elif joint in SPINE_JOINTS:
+            std[d] = SPINE_STD
+    return std * math.sqrt(TABLE5_FPS / fps) * scale
+
+
+def resolve_dynamics(cfg: EvalConfig) -> str:
+    """ "table5" or "random_walk": which motion prior the run uses (``auto`` prefers the registered one)."""
+    if cfg.dynamics == "auto":
+        return "random_walk" if "random_walk" in available_dynamics() else "table5"
+    return cfg.dynamics
+
+
+def particles_per_filter(name: str, budget: int, cfg: EvalConfig, skeleton: Skeleton) -> tuple[int, int]:
+    """(particles, likelihood evaluations per frame) of filter ``name`` under the budget ``N``."""
+    if name in ("sir", "qrs"):
+        return budget, budget
+    if name == "apf":
+        n = max(1, budget // 3)  # Tracker's rule: 3 layers (Fontmarty §3.3.2)
+        return n, 3 * n
+    if name in ("partitioned", "partitioned_qrs"):
+        m = len(body_partition(skeleton))
+        n = max(1, budget // m)
+        return n, m * n
+    per_particle = 1 + cfg.mcmc_moves * (cfg.mcmc_leapfrog + 1)  # SIR weight + per move: L+1 gradients
+    n = max(1, budget // per_particle)
+    return n, n * per_particle
+
+
+def make_prior(seq: EvalSequence, cfg: EvalConfig, dynamics: str):
+    """The Table 5 random walk for ``seq``: the registered ``random_walk`` prior (Table 5 stds rescaled from
+    5 Hz to the sequence's rate, restricted to the joint limits) or the harness's own
+    :func:`table5_std` Gaussian random walk; both have a ``(D,)`` ``std`` buffer."""
+    if dynamics == "random_walk":
+        return make_dynamics("random_walk", seq.skeleton, fps=seq.fps, scale=cfg.dynamics_scale)
+    return GaussianRandomWalk(table5_std(seq.skeleton, seq.fps, cfg.dynamics_scale).float())
+
+
+def make_tracker(seq: EvalSequence, name: str, budget: int, cfg: EvalConfig, dynamics: str) -> Tracker:
+    """The tracker of ``name`` at budget ``N`` with the harness's likelihood and prior."""
+    likelihood = {c: 1.0 for c in cfg.cues}
+    prior = make_prior(seq, cfg, dynamics)
+    options, n = {}, budget
+    if name == "mcmc":
+        # Tracker passes n_particles to the MCMC filter unchanged; the HMC moves' gradients must come out of
+        # the same budget, so hand it the particle count directly.
+        n = particles_per_filter(name, budget, cfg, seq.skeleton)[0]
+        options = {
+            "n_moves": cfg.mcmc_moves,
+            "n_leapfrog": cfg.mcmc_leapfrog,
+            "burn_in": min(5, len(seq.frames)),
+            "step_size": 0.3,
+            # Brubaker's diagonal Delta: steps proportional to the prior's spread; frozen DOFs do not move.
+            "step_scale": prior.std.float(),
+        }
+    return Tracker(
+        seq.skeleton,
+        seq.cameras,
+        likelihood=likelihood if len(likelihood) > 1 else cfg.cues[0],
+        dynamics=prior,
+        filter=name,
+        n_particles=n,
+        filter_options=options,
+        progress=False,
+    )
+
+
+# ================================================================================================ running
+@dataclass
+class BenchmarkResult:
+    """What :func:`run_benchmark` returns.
+
+    ``rows``: one dict per sequence x filter x N x run (``kind == "run"``) then per sequence x filter x N
+    (``kind == "aggregate"``, criteria over the R runs). ``frame_rows``: per sequence x filter x N x run x
+    frame mean joint error. ``sequences``: name -> (source, action, frames, fps).
+    """
+
+    config: EvalConfig
+    dynamics: str
+    rows: list[dict] = field(default_factory=list)
+    frame_rows: list[dict] = field(default_factory=list)
+    sequences: dict[str, dict] = field(default_factory=dict)
+    seconds: float = 0.0
+
+    def aggregates(self) -> list[dict]:
+        return [r for r in self.rows if r["kind"] == "aggregate"]
+
+
+def evaluate_runs(truth: torch.Tensor, estimates: torch.Tensor, threshold: float) -> dict[str, float]:
+    """Criteria of R runs ``estimates (R, K, J, 3)`` vs ``truth (K, J, 3)`` (m; failure as a fraction)."""
+    out = metrics.evaluate(truth, estimates, threshold)
+    if estimates.shape[0] < 2:
+        out["dispersion"] = float("nan")  # eq. 5 is a spread across runs: undefined for one run
+    return out
+
+
+def run_benchmark(cfg: EvalConfig, progress: bool = False, log=None) -> BenchmarkResult:
+    """Run the protocol of ``cfg`` and return the raw and aggregated figures (module docstring)."""
+    t_start = time.perf_counter()
+    dynamics = resolve_dynamics(cfg)
+    result = BenchmarkResult(config=cfg, dynamics=dynamics)
+    specs = sequence_specs(cfg)
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        total = len(specs) * len(cfg.filters) * len(cfg.particles) * cfg.runs
+        bar = tqdm(total=total, desc="tracking runs", unit="run", file=sys.stderr)
+    for source, item in specs:
+        seq = make_sequence(source, item, cfg)
+        K = len(seq.frames)
+        if K < cfg.frames and log is not None:
+            log(f"note: {seq.name} has only {K} frames at {seq.fps:g} Hz (asked for {cfg.frames})")
+        result.sequences[seq.name] = {"source": source, "action": seq.action, "frames": K, "fps": seq.fps}
+        for name in cfg.filters:
+            for budget in cfg.particles:
+                n_particles, evaluations = particles_per_filter(name, budget, cfg, seq.skeleton)
+                tracker = make_tracker(seq, name, budget, cfg, dynamics)
+                estimates, seconds, ess, degenerate = [], [], [], []
+                for r in range(cfg.runs):
+                    track = tracker.track(seq.frames, init=seq.angles[0], seed=cfg.seed + r, fps=seq.fps)
+                    with torch.no_grad():
+                        est = seq.skeleton.fk(track.angles)[:, seq.joints]  # (K, J, 3)
+                    estimates.append(est)
+                    seconds.append(track.seconds / K)
+                    ess.append(float(track.ess.float().mean()))
+                    degenerate.append(int(track.failed.sum()))  # frames where every weight vanished
+                    crit = evaluate_runs(seq.truth, est[None], cfg.threshold)
+                    common = {
+                        "sequence": seq.name,
+                        "source": source,
+                        "filter": name,
+                        "label": FILTER_LABELS[name],
+                        "N": budget,
+                        "particles": n_particles,
+                        "evaluations": evaluations,
+                        "frames": K,
+                    }
+                    result.rows.append(
+                        {
+                            **common,
+                            "kind": "run",
+                            "run": r,
+                            **crit,
+                            "seconds_per_frame": seconds[-1],
+                            "mean_ess": ess[-1],
+                            "degenerate_frames": degenerate[-1],
+                        }
+                    )
+                    err = (est - seq.truth).norm(dim=-1)  # (K, J)
+                    fail = metrics.frame_failures(seq.truth, est, cfg.threshold)[0]
+                    for k in range(K):
+                        result.frame_rows.append(
+                            {
+                                "sequence": seq.name,
+                                "filter": name,
+                                "N": budget,
+                                "run": r,
+                                "frame": k,
+                                "mean_joint_error": float(err[k].mean()),
+                                "max_joint_error": float(err[k].max()),
+                                "failed": bool(fail[k]),
+                            }
+                        )
+                    if bar is not None:
+                        bar.update()
+                crit = evaluate_runs(seq.truth, torch.stack(estimates), cfg.threshold)
+                result.rows.append(
+                    {
+                        **common,
+                        "kind": "aggregate",
+                        "run": "all",
+                        **crit,
+                        "seconds_per_frame": float(np.mean(seconds)),
+                        "mean_ess": float(np.mean(ess)),
+                        "degenerate_frames": sum(degenerate),
+                    }
+                )
+    if bar is not None:
+        bar.close()
+    result.seconds = time.perf_counter() - t_start
+    return result
+
+
+# ================================================================================================ ranks
+def rank_values(values: Mapping[str, float]) -> dict[str, float]:
+    """Ranks 1..n of ``values`` (lower value = better = rank 1); ties share their mean rank; NaN ties last."""
+    vals = {k: math.inf if math.isnan(float(v)) else float(v) for k, v in values.items()}
+    ordered = sorted(vals.values())
+    # a value first seen at 0-based position i and held by c entries spans ranks i+1 .. i+c
+    return {k: ordered.index(v) + (ordered.count(v) + 1) / 2 for k, v in vals.items()}
+
+
+def rank_filters(aggregates: Iterable[Mapping], criteria=CRITERIA) -> dict[str, dict]:
+    """Fontmarty Tables 6-7 from aggregate rows (one per sequence x filter x N).
+
+    Returns ``{filter: {"<key>": mean value over cells, "<key>_cell_rank": mean cell rank,
+    "<key>_rank": rank of that mean, "seconds_per_frame": mean, "mean_rank": mean of the criterion ranks,
+    "overall": rank of mean_rank, "cells": number of cells}}``. Filters missing from a cell are left out of
+    that cell's ranking.
+    """
+    cells: dict[tuple, dict[str, Mapping]] = {}
+    for row in aggregates:
+        cells.setdefault((row["sequence"], row["N"]), {})[row["filter"]] = row
+    filters = sorted({f for c in cells.values() for f in c}, key=lambda f: list(FILTER_LABELS).index(f))
+    table = {f: {"cells": 0, "seconds_per_frame": []} for f in filters}
+    for key, _ in criteria:
+        for f in filters:
+            table[f][key] = []
+            table[f][f"{key}_cell_rank"] = []
+    for cell in cells.values():
+        for f, row in cell.items():
+            table[f]["cells"] += 1
+            table[f]["seconds_per_frame"].append(row["seconds_per_frame"])
+        for key, _ in criteria:
+            ranks = rank_values({f: row[key] for f, row in cell.items()})
+            for f, row in cell.items():
+                table[f][key].append(row[key])
+                table[f][f"{key}_cell_rank"].append(ranks[f])
+    for f in filters:
+        for k, v in list(table[f].items()):
+            if isinstance(v, list):
+                finite = [x for x in v if not math.isnan(x)]
+                table[f][k] = float(np.mean(finite)) if finite else float("nan")
+    for key, _ in criteria:
+        ranks = rank_values({f: table[f][f"{key}_cell_rank"] for f in filters})
+        for f in filters:
+            table[f][f"{key}_rank"] = ranks[f]
+    for f in filters:
+        table[f]["mean_rank"] = float(np.mean([table[f][f"{key}_rank"] for key, _ in criteria]))
+    overall = rank_values({f: table[f]["mean_rank"] for f in filters})
+    for f in filters:
+        table[f]["overall"] = overall[f]
+    return table
+
+
+# ================================================================================================ report
+def _fmt_rank(r: float) -> str:
+    return f"{r:.0f}" if float(r).is_integer() else f"{r:.1f}"
+
+
+def _fmt(x: float, scale: float = 1.0, digits: int = 1) -> str:
+    return "-" if x is None or math.isnan(x) else f"{x * scale:.{digits}f}"
+
+
+def ranking_markdown(table: Mapping[str, Mapping], title: str) -> str:
+    """A Tables 6-7 style markdown table (values in cm / %, ranks per criterion, mean rank), best first."""
+    head = (
+        "| Filter | RMSE (cm) | Bias (cm) | Dispersion (cm) | Failure (%) | Time/frame (s) "
+        "| Accuracy | Dispersion | Failure rate | Bias | Mean rank |"
+    )
+    lines = [f"### {title}", "", head, "|" + "---|" * 11]
+    for f in sorted(table, key=lambda f: (table[f]["mean_rank"], list(FILTER_LABELS).index(f))):
+        t = table[f]
+        lines.append(
+            f"| {FILTER_LABELS[f]} | {_fmt(t['rmse'], 100)} | {_fmt(t['bias'], 100)} "
+            f"| {_fmt(t['dispersion'], 100)} | {_fmt(t['failure_rate'], 100)} "
+            f"| {_fmt(t['seconds_per_frame'], 1, 3)} | "
+            + " | ".join(_fmt_rank(t[f"{k}_rank"]) for k, _ in CRITERIA)
+            + f" | {t['mean_rank']:.2f} |"
+        )
+    return "\n".join(lines)
+
+
+def rmse_by_n_markdown(result: BenchmarkResult) -> str:
+    """RMSE (cm) per sequence x filter (rows) and N (columns): the numbers behind Fig. 8 (a)."""
+    budgets = list(result.config.particles)
+    lines = [
+        "### RMSE (cm) by budget N (likelihood evaluations per frame)",
+        "",
+        "| Sequence | Filter | " + " | ".join(f"N={n}" for n in budgets) + " |",
+        "|---|---|" + "---|" * len(budgets),
+    ]
+    agg = {(r["sequence"], r["filter"], r["N"]): r for r in result.aggregates()}
+    for seq in result.sequences:
+        for f in result.config.filters:
+            vals = [_fmt(agg[(seq, f, n)]["rmse"], 100) if (seq, f, n) in agg else "-" for n in budgets]
+            lines.append(f"| {seq} | {FILTER_LABELS[f]} | " + " | ".join(vals) + " |")
+    return "\n".join(lines)
+
+
+def format_markdown(result: BenchmarkResult) -> str:
+    """The whole report: rankings over all sequences, per source (generator ~ Table 6, CMU ~ Table 7)."""
+    cfg = result.config
+    agg = result.aggregates()
+    seqs = ", ".join(f"{n} ({s['frames']} frames @ {s['fps']:.3g} Hz)" for n, s in result.sequences.items())
+    parts = [
+        "## Filter evaluation (Fontmarty et al. protocol)",
+        "",
+        f"Sequences: {seqs}. Budgets N = {', '.join(map(str, cfg.particles))} likelihood evaluations per "
+        f"frame; R = {cfg.runs} runs; cues {'+'.join(cfg.cues)}; masks {cfg.mask_size[0]}x{cfg.mask_size[1]} "
+        f"(morph {cfg.morph_px} px, speckle {cfg.speckle}); dynamics {result.dynamics}; "
+        f"T_failure = {cfg.threshold} m; {'all' if cfg.joints == 'all' else len(EVAL_JOINTS)} joints. "
+        "Values are means over the (sequence, N) cells; ranks: 1 = best.",
+        "",
+        ranking_markdown(rank_filters(agg), "All sequences"),
+    ]
+    sources = sorted({r["source"] for r in agg})
+    if len(sources) > 1:
+        titles = {"generator": "Generator sequences (model fits, cf. Table 6)", "cmu": "CMU mocap sequences"}
+        for s in sources:
+            parts += ["", ranking_markdown(rank_filters(r for r in agg if r["source"] == s), titles[s])]
+    parts += ["", rmse_by_n_markdown(result), "", f"Total time {result.seconds:.0f} s."]
+    return "\n".join(parts) + "\n"
+
+
+def _write_csv(path: Path, rows: Sequence[Mapping]) -> None:
+    keys = list(dict.fromkeys(k for r in rows for k in r))
+    with open(path, "w", newline="", encoding="utf-8") as f:
+        w = csv.DictWriter(f, fieldnames=keys)
+        w.writeheader()
+        w.writerows(rows)
+
+
+def plot_figures(result: BenchmarkResult, out: Path) -> list[Path]:
+    """Fig. 8-like plots (criteria vs N, per sequence and averaged) and Fig. 15-like ones (error vs frame)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    cfg, paths = result.config, []
+    agg = result.aggregates()
+    panels = [
+        ("rmse", "(a) RMSE (cm)", 100),
+        ("dispersion", "(b) dispersion (cm)", 100),
+        ("failure_rate", "(c) failure rate (%)", 100),
+        ("bias", "(d) bias (cm)", 100),
+    ]
+    groups = {name: [r for r in agg if r["sequence"] == name] for name in result.sequences}
+    if len(groups) > 1:
+        groups["all"] = agg
+    for name, rows in groups.items():
+        fig, axes = plt.subplots(2, 2, figsize=(9, 6.5), constrained_layout=True)
+        for ax, (key, title, scale) in zip(axes.flat, panels, strict=True):
+            for f in cfg.filters:
+                xs = sorted({r["N"] for r in rows if r["filter"] == f})
+                ys = [
+                    np.nanmean([r[key] for r in rows if r["filter"] == f and r["N"] == n]) * scale for n in xs
+                ]
+                ax.plot(xs, ys, marker="o", label=FILTER_LABELS[f])
+            ax.set_title(title)
+            ax.set_xlabel("N (likelihood evaluations / frame)")
+            ax.set_xticks(list(cfg.particles))
+            ax.grid(alpha=0.3)
+        axes[0, 0].legend(fontsize=8)
+        fig.suptitle(f"{name}: criteria vs N (R = {cfg.runs})" if name != "all" else "mean over sequences")
+        paths.append(out / f"fig8_{name}.png")
+        fig.savefig(paths[-1], dpi=110)
+        plt.close(fig)
+    for name in result.sequences:
+        frames = [r for r in result.frame_rows if r["sequence"] == name]
+        n_panels = len(cfg.filters) + 1
+        cols = min(3, n_panels)
+        rows_ = math.ceil(n_panels / cols)
+        fig, axes = plt.subplots(
+            rows_, cols, figsize=(4 * cols, 3 * rows_), squeeze=False, constrained_layout=True
+        )
+        top = 0.0
+        for ax, f in zip(axes.flat, cfg.filters, strict=False):
+            for n in cfg.particles:
+                sel = [r for r in frames if r["filter"] == f and r["N"] == n]
+                K = max(r["frame"] for r in sel) + 1
+                err = [
+                    np.mean([r["mean_joint_error"] for r in sel if r["frame"] == k]) * 100 for k in range(K)
+                ]
+                ax.plot(range(K), err, label=f"N={n}")
+            ax.set_title(FILTER_LABELS[f])
+            top = max(top, ax.get_ylim()[1])
+            ax.set_xlabel("frame")
+            ax.set_ylabel("mean joint error (cm)")
+            ax.grid(alpha=0.3)
+            ax.legend(fontsize=7)
+        for ax in list(axes.flat)[: len(cfg.filters)]:
+            ax.set_ylim(0.0, top)  # one error scale for all filters, as in Fig. 15 (a)-(e)
+        ax = axes.flat[len(cfg.filters)]
+        for f in cfg.filters:
+            sel = sorted((r for r in agg if r["sequence"] == name and r["filter"] == f), key=lambda r: r["N"])
+            ax.plot(
+                [r["N"] for r in sel],
+                [r["failure_rate"] * 100 for r in sel],
+                marker="o",
+                label=FILTER_LABELS[f],
+            )
+        ax.set_xscale("log")
+        ax.set_xticks(list(cfg.particles), [str(n) for n in cfg.particles])
+        ax.minorticks_off()
+        ax.set_title("failure rate vs N")
+        ax.set_xlabel("N")
+        ax.set_ylabel("failures (%)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+        for ax in list(axes.flat)[n_panels:]:
+            ax.axis("off")
+        fig.suptitle(f"{name}: error per frame (mean over {cfg.runs} runs)")
+        paths.append(out / f"fig15_{name}.png")
+        fig.savefig(paths[-1], dpi=110)
+        plt.close(fig)
+    return paths
+
+
+def write_outputs(result: BenchmarkResult, out: str | os.PathLike, plots: bool = True) -> dict[str, Path]:
+    """Write table.md, results.csv, frames.csv, config.json (and the PNG plots) under ``out``."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = {
+        "table": out / "table.md",
+        "results": out / "results.csv",
+        "frames": out / "frames.csv",
+        "config": out / "config.json",
+    }
+    paths["table"].write_text(format_markdown(result), encoding="utf-8")
+    _write_csv(paths["results"], result.rows)
+    _write_csv(paths["frames"], result.frame_rows)
+    meta = {
+        **dataclasses.asdict(result.config),
+        "dynamics_used": result.dynamics,
+        "sequences_used": result.sequences,
+        "seconds": result.seconds,
+        "torch": torch.__version__,
+        "threads": torch.get_num_threads(),
+    }
+    paths["config"].write_text(json.dumps(meta, indent=2, default=str), encoding="utf-8")
+    if plots:
+        for p in plot_figures(result, out):
+            paths[p.stem] = p
+    return paths
+
+
+# ================================================================================================ CLI
+class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Shows argparse defaults, except the None of the options whose help names their own default."""
+
+    def _get_help_string(self, action):
+        return action.help if action.default is None else super()._get_help_string(action)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="python benchmarks/evaluate.py",
+        description="Fontmarty et al. evaluation of the particle filters: RMSE, bias, dispersion, failure "
+        "rate and ranks at equal numbers of likelihood evaluations (see the module docstring).",
+        formatter_class=_HelpFormatter,
+    )
+    d = EvalConfig()
+    # Options that --quick/--full preset default to None here so that an explicit value always wins.
+    p.add_argument(
+        "--sequences",
+        help="comma list of sources (cmu, generator) or source:item (cmu:16_46, generator:walk); "
+        f"a source alone takes its default items {DEFAULT_ITEMS} (default: {','.join(d.sequences)})",
+    )
+    p.add_argument(
+        "--filters", help=f"comma list of {list(FILTER_LABELS)} or 'all' (default: {','.join(d.filters)})"
+    )
+    p.add_argument("--particles", type=int, nargs="+", help=f"budgets N (default: {list(d.particles)})")
+    p.add_argument(
+        "--runs", type=int, help=f"runs R per filter and N, seeds seed..seed+R-1 (default: {d.runs})"
+    )
+    p.add_argument("--frames", type=int, help=f"frames K per sequence (default: {d.frames})")
+    p.add_argument("--mask-size", type=int, nargs=2, metavar=("W", "H"), help=f"(default: {d.mask_size})")
+    p.add_argument("--fps", type=float, default=d.fps, help="tracking frame rate (mocap is subsampled)")
+    p.add_argument("--morph-px", type=int, default=d.morph_px, help="segmentation noise: erosion/dilation px")
+    p.add_argument("--speckle", type=float, default=d.speckle, help="segmentation noise: flipped pixel share")
+    p.add_argument("--cues", default=",".join(d.cues), help="comma list of silhouette, dual_silhouette, skin")
+    p.add_argument("--threshold", type=float, default=d.threshold, help="T_failure (m)")
+    p.add_argument(
+        "--dynamics",
+        choices=["auto", "table5", "random_walk"],
+        default=d.dynamics,
+        help="motion prior: Table 5 random walk built here, the registered 'random_walk', or auto",
+    )
+    p.add_argument(
+        "--dynamics-scale", type=float, default=d.dynamics_scale, help="multiplies the Table 5 stds"
+    )
+    p.add_argument("--joints", choices=["body", "all"], default=d.joints, help="joints the criteria use")
+    p.add_argument("--cmu-dir", default=d.cmu_dir, help="folder of the CMU BVH clips")
+    p.add_argument("--seed", type=int, default=d.seed)
+    p.add_argument("--out", default="out/evaluate", help="output folder")
+    p.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
+    p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    mode = p.add_mutually_exclusive_group()
+    mode.add_argument("--quick", action="store_true", help=f"smoke run: {QUICK_SEQUENCES}, {QUICK}")
+    mode.add_argument("--full", action="store_true", help=f"the paper's grid: {FULL}")
+    return p
+
+
+def config_from_args(args: argparse.Namespace) -> EvalConfig:
+    """EvalConfig from the CLI; --quick/--full set the sizes that were not given explicitly."""
+    preset = {**QUICK, "sequences": QUICK_SEQUENCES} if args.quick else FULL if args.full else {}
+    kwargs = {}
+    for key in ("sequences", "filters", "particles", "runs", "frames", "mask_size"):
+        value = getattr(args, key)
+        if isinstance(value, str):
+            value = tuple(FILTER_LABELS) if value == "all" else tuple(s for s in value.split(",") if s)
+        if value is not None:
+            kwargs[key] = tuple(value) if isinstance(value, list) else value
+        elif key in preset:
+            kwargs[key] = preset[key]
+    kwargs.update(
+        fps=args.fps,
+        morph_px=args.morph_px,
+        speckle=args.speckle,
+        cues=tuple(s for s in args.cues.split(",") if s),
+        threshold=args.threshold,
+        dynamics=args.dynamics,
+        dynamics_scale=args.dynamics_scale,
+        joints=args.joints,
+        cmu_dir=args.cmu_dir,
+        seed=args.seed,
+    )
+    return EvalConfig(**kwargs)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    torch.set_num_threads(max(1, args.threads))
+    try:
+        cfg = config_from_args(args)
+        result = run_benchmark(cfg, progress=not args.no_progress, log=lambda m: print(m, file=sys.stderr))
+    except (ValueError, FileNotFoundError) as e:
+        parser.exit(2, f"error: {e}\n")
+    paths = write_outputs(result, args.out, plots=not args.no_plots)
+    print(paths["table"].read_text(encoding="utf-8"))
+    print(f"wrote {', '.join(str(p) for p in paths.values())}", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
