@@ -112,6 +112,8 @@ def _track(args) -> int:
         if value is not None:
             kwargs[key] = value
     kwargs["progress"] = not args.no_progress
+    if seq.times is not None and len(seq.times) > 1 and "fps" not in kwargs:
+        kwargs["fps"] = 1.0 / float(seq.times[1] - seq.times[0])
     tracker = Tracker.from_config(kwargs, skeleton=skel, cameras=seq.cameras)
     result = tracker.track(seq, seed=args.seed)
     result.save_csv(args.out)

@@ -35,6 +35,7 @@ Example::
 from __future__ import annotations
 
 import dataclasses
+import inspect
 import os
 import time
 from collections.abc import Mapping
@@ -91,6 +92,10 @@ def make_dynamics(name: str, skeleton, **options) -> Any:
     return eps[name].load()(skeleton, **options)
 
 
+def _spec_names(spec) -> list[str]:
+    return [spec] if isinstance(spec, str) else list(spec)
+
+
 def make_likelihood(skeleton, cameras, spec, options: Mapping[str, Mapping] | None = None) -> nn.Module:
     """A likelihood module from a name, a list of names or ``{name: weight}`` (weights of the log terms).
 
@@ -123,11 +128,16 @@ def make_likelihood(skeleton, cameras, spec, options: Mapping[str, Mapping] | No
     return L.ProductLikelihood(terms, weights=weights)
 
 
-def body_partition(skeleton) -> list[list[int]]:
-    """DOF index groups for partitioned sampling: the torso first, then one group per limb.
+def body_partition(skeleton, *, per_limb: bool = False, joints: bool = False) -> list[list[int]]:
+    """Index groups for partitioned sampling (Fontmarty Table 2): the torso first, then the limbs.
 
     The torso is the chain from the root towards the highest joint in the rest pose (pelvis, spine, neck,
-    head) with the root's DOFs; each subtree hanging off that chain (legs, arms) is a limb. Fontmarty §2.3.
+    head), with the root's DOFs; each subtree hanging off that chain (legs, arms) is a limb. Fontmarty §3.3.2
+    uses two partitions: the torso, then all the limbs together (``per_limb=False``); ``per_limb=True`` gives
+    one partition per limb.
+
+    Returns:
+        DOF indices per partition, or body-joint indices with ``joints=True``.
     """
     names, parents = skeleton.joint_names, skeleton.parents
     rest = skeleton.fk(torch.zeros(len(skeleton.dof_names), dtype=torch.float64))
@@ -152,9 +162,11 @@ def body_partition(skeleton) -> list[list[int]]:
         best = max(children[j], key=lambda c: float(rest[subtree(c), 2].max()))
         limbs += [subtree(c) for c in children[j] if c != best]
         j = best
+    joint_groups = [torso] + (limbs if per_limb else [[j for limb in limbs for j in limb]])
+    if joints:
+        return [g for g in joint_groups if g]
     owner = skeleton.dof_joints
-    groups = [[d for d, j in enumerate(owner) if j in torso]]
-    groups += [[d for d, j in enumerate(owner) if j in limb] for limb in limbs]
+    groups = [[d for d, j in enumerate(owner) if j in g] for g in joint_groups]
     return [g for g in groups if g]
 
 
@@ -224,6 +236,8 @@ class Tracker(nn.Module):
         filter_options: extra keywords of the filter (e.g. ``{"betas": "adaptive"}`` for the APF).
         init_spread: std of the initial particles around the initial pose: a float (rad and m alike) or a
             (D,) tensor.
+        fps: frame rate (Hz) of the sequences to track; passed to a named prior's factory that takes ``fps``
+            (the Table 5 random-walk stds are per 5 Hz frame and rescale with ``sqrt(5 / fps)``).
         device, dtype: where and in which precision to run (observations are moved per frame).
         progress: tqdm progress bar.
     """
@@ -242,6 +256,7 @@ class Tracker(nn.Module):
         n_particles: int = 500,
         filter_options: Mapping[str, Any] | None = None,
         init_spread: float | torch.Tensor = 0.02,
+        fps: float | None = None,
         device: str | torch.device | None = None,
         dtype: torch.dtype = torch.float32,
         progress: bool = True,
@@ -257,15 +272,23 @@ class Tracker(nn.Module):
             raise ValueError(f"n_particles must be >= 1, got {n_particles}")
         self.skeleton = skeleton
         self.cameras = cameras
+        self._likelihood_spec = likelihood
+        self._likelihood_options = dict(likelihood_options or {})
         self.likelihood = make_likelihood(skeleton, cameras, likelihood, likelihood_options)
         if isinstance(dynamics, str):
-            dynamics = make_dynamics(dynamics, skeleton, **dict(dynamics_options or {}))
+            options = dict(dynamics_options or {})
+            if fps is not None and "fps" not in options:
+                factory = available_dynamics().get(dynamics)
+                if factory is not None and "fps" in inspect.signature(factory.load()).parameters:
+                    options["fps"] = fps  # a random walk's per-frame std depends on the frame rate
+            dynamics = make_dynamics(dynamics, skeleton, **options)
         self.dynamics = dynamics
         self.proposal = proposal
         self.filter_name = "sir" if filter == "condensation" else filter
         self.n_particles = int(n_particles)
         self.filter_options = dict(filter_options or {})
         self.init_spread = init_spread
+        self.fps = fps
         self.device = torch.device(device) if device is not None else torch.device("cpu")
         self.dtype = dtype
         self.progress = progress
@@ -327,11 +350,12 @@ class Tracker(nn.Module):
                 **opts,
             )
         if name in ("partitioned", "partitioned_qrs"):
-            groups = opts.pop("groups", None) or body_partition(self.skeleton)
+            per_limb = opts.pop("per_limb", False)
+            groups = opts.pop("groups", None) or body_partition(self.skeleton, per_limb=per_limb)
             per_stage = max(1, n // len(groups))
             return PartitionedParticleFilter(
                 self.dynamics,
-                [self.likelihood] * len(groups),
+                self._stage_likelihoods(groups),
                 groups,
                 n_particles=per_stage,
                 sampling="qrs" if name == "partitioned_qrs" else "mc",
@@ -361,6 +385,37 @@ class Tracker(nn.Module):
             **common,
             **opts,
         )
+
+    def _stage_likelihoods(self, groups: list[list[int]]) -> list:
+        """Partial likelihoods l_m of Fontmarty Table 2: stage m scores only the bones moved by partitions
+        1..m (terms built by name that take ``bones``); the last stage is the full likelihood. A likelihood
+        given as a module is used whole at every stage."""
+        if isinstance(self._likelihood_spec, nn.Module):
+            return [self.likelihood] * len(groups)
+        owner = self.skeleton.dof_joints
+        stages, moved = [], set()
+        for group in groups[:-1]:
+            moved |= {owner[d] for d in group}
+            bones = [c for c, (_, child) in enumerate(self.skeleton.bones) if child in moved]
+            options = {}
+            for term in _spec_names(self._likelihood_spec):
+                options[term] = dict(self._likelihood_options.get(term, {}))
+                if "bones" in inspect.signature(LIKELIHOODS[term]).parameters:
+                    options[term]["bones"] = bones
+            stages.append(make_likelihood(self.skeleton, self.cameras, self._likelihood_spec, options))
+        return [*stages, self.likelihood]
+
+    @property
+    def likelihood_evaluations(self) -> int:
+        """Likelihood evaluations per frame of the assembled filter (at most ``n_particles``)."""
+        n = self.filter.n_particles
+        if self.filter_name == "apf":
+            return n * self.filter.n_layers
+        if self.filter_name.startswith("partitioned"):
+            return n * len(self.filter.groups)
+        if self.filter_name == "mcmc":
+            return n * (1 + self.filter.n_moves * (self.filter.n_leapfrog + 1))
+        return n
 
     # ------------------------------------------------------------------ running
     def initial_particles(self, pose: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
@@ -432,7 +487,7 @@ class Tracker(nn.Module):
         seconds = time.perf_counter() - t0
         return TrackResult(
             dof_names=list(self.skeleton.dof_names),
-            fps=float(fps or 30.0),
+            fps=float(fps or self.fps or 30.0),
             angles=track.estimates.detach().to(torch.float64).cpu(),
             map_angles=track.map_estimates.detach().to(torch.float64).cpu(),
             ess=track.ess.detach().cpu(),
@@ -440,5 +495,5 @@ class Tracker(nn.Module):
             failed=track.failed.detach().cpu(),
             stats={k: v.detach().cpu() if isinstance(v, torch.Tensor) else v for k, v in track.stats.items()},
             seconds=seconds,
-            likelihood_evaluations=self.n_particles,
+            likelihood_evaluations=self.likelihood_evaluations,
         )

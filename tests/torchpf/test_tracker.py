@@ -55,13 +55,14 @@ def test_same_seed_same_track_and_equal_budget(scene):
     a = apf.track(seq, seed=3)
     b = apf.track(seq, seed=3)
     assert torch.equal(a.angles, b.angles)
-    part = Tracker(skel, cams, filter="partitioned", **kwargs)
-    assert part.filter.n_particles * len(body_partition(skel)) <= 300
+    part = Tracker(skel, cams, filter="partitioned", filter_options={"per_limb": True}, **kwargs)
+    assert part.filter.n_particles * len(body_partition(skel, per_limb=True)) <= 300
+    assert apf.likelihood_evaluations == 300 and part.likelihood_evaluations == 300
 
 
 def test_body_partition_covers_every_dof_once():
     skel = Skeleton.from_urdf(path("human.urdf"))
-    groups = body_partition(skel)
+    groups = body_partition(skel, per_limb=True)
     flat = sorted(d for g in groups for d in g)
     assert flat == list(range(96))
     torso = {skel.dof_names[d] for d in groups[0]}
@@ -69,9 +70,31 @@ def test_body_partition_covers_every_dof_once():
     assert len(groups) == 5  # torso, two legs, two arms
     limbs = [{skel.dof_names[d].split("_")[0] for d in g} for g in groups[1:]]
     assert any("LeftForeArm" in limb for limb in limbs) and any("RightLeg" in limb for limb in limbs)
+    two = body_partition(skel)  # Fontmarty's two partitions: torso, then every limb
+    assert two[0] == groups[0] and sorted(two[1]) == sorted(d for g in groups[1:] for d in g)
     f22 = Skeleton.from_urdf(path("fontmarty22.urdf"))
-    g22 = body_partition(f22)
-    assert [len(g) for g in g22] == [6, 4, 4, 4, 4]  # root; each limb: ball (3) + hinge (1)
+    assert [len(g) for g in body_partition(f22, per_limb=True)] == [6, 4, 4, 4, 4]  # ball (3) + hinge (1)
+    assert [len(g) for g in body_partition(f22)] == [6, 16]
+    assert [f22.joint_names[j] for j in body_partition(f22, joints=True)[0]] == ["pelvis", "neck", "head_top"]
+
+
+def test_partitioned_stages_use_partial_likelihoods(scene):
+    skel, cams, _, _ = scene
+    tracker = Tracker(
+        skel,
+        cams,
+        likelihood={"silhouette": 1.0, "dual_silhouette": 0.5},
+        dynamics=walk(),
+        filter="partitioned",
+        n_particles=300,
+        progress=False,
+    )
+    first, last = tracker.filter.likelihoods
+    assert last is tracker.likelihood
+    torso = set(body_partition(skel, joints=True)[0])
+    for term in first.terms.values():  # stage 1 scores the torso's bones only
+        assert term.bones and all(skel.bones[c][1] in torso for c in term.bones)
+    assert tracker.likelihood_evaluations == 300 and tracker.filter.n_particles == 150
 
 
 def test_sequence_directory_and_csv(scene, tmp_path):
@@ -143,3 +166,13 @@ def test_mcmc_and_wrapped_dynamics_budget(scene):
 
     apf = Tracker(skel, cams, dynamics=Wrapper(), filter="apf", n_particles=90, progress=False)
     torch.testing.assert_close(torch.as_tensor(apf.filter.diffusion_std), torch.full((96,), 0.02))
+
+
+def test_named_prior_gets_the_frame_rate(scene):
+    from priors.factories import table5_sigma
+
+    skel, cams, _, _ = scene
+    tracker = Tracker(
+        skel, cams, dynamics="random_walk", fps=20.0, filter="sir", n_particles=10, progress=False
+    )
+    torch.testing.assert_close(torch.as_tensor(tracker.dynamics.std), table5_sigma(skel, fps=20.0))

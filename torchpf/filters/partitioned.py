@@ -33,6 +33,7 @@ from collections.abc import Sequence
 from typing import Any
 
 import torch
+from torch import nn
 
 from torchpf.filters import protocols as P
 from torchpf.filters.base import ParticleFilter, reweight
@@ -83,7 +84,12 @@ class PartitionedParticleFilter(ParticleFilter):
             sampling=sampling,
             progress=progress,
         )
-        self.likelihoods = likelihoods
+        # a ModuleList moves the stage likelihoods with .to(device) when they are modules
+        self.likelihoods = (
+            nn.ModuleList(likelihoods)
+            if all(isinstance(lik, nn.Module) for lik in likelihoods)
+            else likelihoods
+        )
         self.groups = groups
 
     def _check_groups(self, dim: int) -> None:
