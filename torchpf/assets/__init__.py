@@ -3,7 +3,10 @@
 * ``human.urdf``: a full-body human with the joint tree of the CMU mocap BVH files (31 body joints, floating
   root, every other joint a ball joint of three revolute DOFs named ``<Joint>_<BVH channel>``), z up, facing
   -y, T-pose at zero, anatomical limits, capsule radii. CMU motions converted by ``training.mocap.load_bvh``
-  use the same DOF names, so their angle tracks drive this model directly (retargeting by DOF name).
+  use the same DOF names, so their angle tracks drive this model directly (retargeting by DOF name). The
+  retargeting is approximate: CMU's rest pose slants the thighs outwards by about 20 degrees where this
+  model's legs hang straight, so CMU angles put the knees about 15 cm wider; to reproduce a clip exactly,
+  use the skeleton ``load_bvh`` converts from it.
 * ``fontmarty22.urdf``: the 22-DOF model of Fontmarty et al. (Fig. 1): 6 root DOFs, ball shoulders and
   hips, hinge elbows and knees.
 
