@@ -1,7 +1,7 @@
 """priors: motion models and importance distributions for articulated tracking (depends on torchpf).
 
-* :mod:`priors.random_walk`: ``AngularRandomWalk`` (Hauberg eq. 3) within the joint limits.
-* :mod:`priors.motion`: ``ConstantVelocity`` (Rius eq. 3),
+* :mod:`priors.motion`: ``AngularRandomWalk`` (Hauberg eq. 3) within the joint limits, ``ConstantVelocity``
+  (Rius eq. 3),
   ``DampedSecondOrder`` (Brubaker eq. 13), ``ProjectedGaussian`` (Hauberg eq. 6-7).
 * :mod:`priors.proposals`: data-driven importance distributions ``SilhouetteGuided`` (Hauberg eq. 12),
   ``DepthGuided`` (Hauberg eq. 13-14) and the ``AngularRejection`` baseline (Hauberg eq. 4).
@@ -15,7 +15,7 @@ from importlib import import_module
 
 # Resolved lazily so that each submodule can be imported (and developed) on its own.
 _LAZY = {
-    "AngularRandomWalk": "priors.random_walk",
+    "AngularRandomWalk": "priors.motion",
     "ConstantVelocity": "priors.motion",
     "DampedSecondOrder": "priors.motion",
     "ProjectedGaussian": "priors.motion",

@@ -8,21 +8,31 @@ Every prior is an ``nn.Module`` following the duck-typed dynamics protocol of
 * :class:`ConstantVelocity` -- Rius eq. 3: ``φ_t = φ_{t-1} + V + N(0, σ_φ²)`` with a per-particle
   velocity ``V_t = α V_{t-1} + (1-α)(φ_{t-1} - φ_{t-2})`` carried as the extra ``"velocity"``.
 * :class:`DampedSecondOrder` -- Brubaker eq. 13: ``s_{t+1} = s_t + κ (s_t - s_{t-1}) + η``.
+* :class:`AngularRandomWalk` -- Hauberg eq. 3: ``p(θ_t | θ_{t-1}) ∝ N(θ_t | θ_{t-1}, diag σ²) U_Θ(θ_t)``,
+  the Gaussian random walk in joint angles truncated to the joint limits, with per-DOF σ defaulting to
+  Fontmarty Table 5 (:func:`table5_sigma`).
+* :class:`ProjectedGaussian` -- Hauberg eq. 6-7: joint *positions* drawn from ``N(F(θ_{t-1}), Σ)`` with
+  per-joint blocks ``Σ_l`` and projected onto the pose manifold by :func:`torchpf.ik.project`. Its spatial
+  spread is the same for every joint, where the angular walk's grows along each kinematic chain (hands
+  spread more than shoulders, Hauberg §1.2).
 
 Example::
 
-    cv = ConstantVelocity(0.05, alpha=0.5)
-    extras = cv.init_extras(x0)                               # {"velocity": zeros (..., N, D)}
-    x1 = cv.sample(x0, generator, extras=extras); extras = cv.update_extras(x1, x0, extras)
+    walk = AngularRandomWalk.from_skeleton(skel, fps=30)      # Table-5 σ, exact truncation at the limits
+    x1 = walk.sample(x0, generator)                           # (..., N, D) -> (..., N, D)
+    lp = walk.log_prob(x1, x0)                                # (..., N)
 """
 
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Mapping
 
 import torch
 from torch import Tensor, nn
+
+from torchpf import ik
 
 _LOG_2PI = math.log(2.0 * math.pi)
 
@@ -209,3 +219,345 @@ class DampedSecondOrder(_VelocityDynamics):
 
     def extra_repr(self) -> str:
         return f"{super().extra_repr()}, kappa={self.kappa}"
+
+
+# ------------------------------------------------------------------------------------- angular random walk
+
+#: Fontmarty Table 5: random-walk std per joint group at a 5 Hz acquisition rate (rad, or m for the base).
+TABLE5 = {
+    "base_translation": 0.07,
+    "base_rotation": 0.05,
+    "shoulder": 0.1,
+    "elbow": 0.3,
+    "hip": 0.1,
+    "knee": 0.1,
+}
+TABLE5_FPS = 5.0
+
+# Joint name -> group, first match wins. Table 5 covers the 22-DOF model; for the CMU joint tree of
+# human.urdf the other joints get a spine/extremity std, and the joints that real CMU data keeps at zero and
+# silhouettes cannot see (clavicles, the pelvis-to-hip links, fingers, thumbs) are held still.
+_GROUPS = [
+    (r"HipJoint$|^(Left|Right)Shoulder$|Finger|Thumb|HandIndex", 0.0),
+    (r"ForeArm$|elbow", TABLE5["elbow"]),
+    (r"UpLeg$|_hip$", TABLE5["hip"]),
+    (r"(Left|Right)Leg$|knee", TABLE5["knee"]),
+    (r"(Left|Right)Arm$|shoulder", TABLE5["shoulder"]),
+    (r"Foot$|Toe|ankle|Hand$|wrist", 0.1),
+    (r"Back|Spine|Neck|Head|torso|neck|head", 0.05),
+]
+
+
+def table5_sigma(skeleton, fps: float = TABLE5_FPS, scale: float = 1.0) -> torch.Tensor:
+    """(D,) per-DOF random-walk std of Fontmarty Table 5 for ``skeleton``, at ``fps``.
+
+    The table is given at 5 Hz; a random walk's std grows with the square root of the time step, so the
+    std per frame at ``fps`` is ``sigma_5Hz * sqrt(5 / fps)``, times ``scale``. The root's prismatic DOFs
+    get the base translation std (m), its revolute DOFs the base rotation std; other DOFs are grouped by
+    the name of the joint they move (``skeleton.dof_joints``).
+    """
+    if not fps > 0:
+        raise ValueError(f"fps must be > 0, got {fps}")
+    names, owner, parents = skeleton.joint_names, skeleton.dof_joints, skeleton.parents
+    sigma = []
+    for d, j in enumerate(owner):
+        if j >= 0 and parents[j] < 0:
+            kind = skeleton.chain.find_joint(skeleton.dof_names[d]).joint_type
+            s = TABLE5["base_translation"] if kind == "prismatic" else TABLE5["base_rotation"]
+        else:
+            joint = names[j] if j >= 0 else ""
+            s = next((v for pattern, v in _GROUPS if re.search(pattern, joint)), 0.05)
+        sigma.append(s)
+    return torch.tensor(sigma, dtype=torch.float64) * math.sqrt(TABLE5_FPS / fps) * scale
+
+
+def _log_ndtr_interval(a: Tensor, b: Tensor) -> Tensor:
+    """``log(Φ(b) - Φ(a))`` for ``a <= b``, stable in both tails (and for infinite bounds)."""
+    # In the upper tail use the mirror image: Φ(b) - Φ(a) = Φ(-a) - Φ(-b).
+    flip = a > 0
+    lo = torch.where(flip, -b, a)
+    hi = torch.where(flip, -a, b)
+    log_hi = torch.special.log_ndtr(hi)
+    log_lo = torch.special.log_ndtr(lo)
+    return log_hi + torch.log1p(-torch.exp((log_lo - log_hi).clamp(max=0.0)).clamp(max=1.0 - 1e-16))
+
+
+def _truncnorm_icdf(mu: Tensor, sigma: Tensor, lo: Tensor, hi: Tensor, eps: Tensor) -> Tensor:
+    """Exact truncated-normal sample from standard-normal ``eps`` by the inverse CDF (a deterministic map)."""
+    a, b = (lo - mu) / sigma, (hi - mu) / sigma
+    flip = a > 0  # work in the lower tail for accuracy, mirror back
+    a2, b2 = torch.where(flip, -b, a), torch.where(flip, -a, b)
+    u = torch.special.ndtr(torch.where(flip, -eps, eps))
+    pa, pb = torch.special.ndtr(a2), torch.special.ndtr(b2)
+    p = (pa + u * (pb - pa)).clamp(torch.finfo(mu.dtype).tiny, 1 - torch.finfo(mu.dtype).eps)
+    z = torch.special.ndtri(p).clamp(a2, b2)
+    return mu + sigma * torch.where(flip, -z, z)
+
+
+class AngularRandomWalk(nn.Module):
+    """Gaussian random walk in joint angles, restricted to the joint limits (Hauberg eq. 3).
+
+    ``p(θ_t | θ_{t-1}) ∝ N(θ_t | θ_{t-1}, diag σ²) U_Θ(θ_t)`` with ``Θ = [lower, upper]`` a box. How the
+    limits are imposed (``limits``), and what :meth:`log_prob` then returns:
+
+    * ``"reject"`` (default, exact): each DOF is redrawn while it lies outside its limits (vectorised over all
+      particles and DOFs, at most ``max_tries`` rounds; the few left then come from the exact inverse-CDF
+      sampler). A box and a diagonal covariance make eq. 3 a product of per-DOF truncated normals, so
+      rejecting per DOF samples exactly the same law as whole-pose rejection, much faster. ``log_prob`` is
+      the exact truncated density ``Σ_d log N(θ_d; μ_d, σ_d) - log(Φ(b_d) - Φ(a_d))``, ``-inf`` outside.
+    * ``"reflect"``: out-of-limit draws are folded back into the box. ``log_prob`` is the exact density of
+      the folded normal (sum over the mirror images, two periods each way).
+    * ``"clamp"``: out-of-limit draws are clamped to the bound, which puts point masses on the bounds.
+      ``log_prob`` mixes measures: density inside, log-*probability* ``log Φ`` of the mass at a bound.
+    * ``"none"``: the plain Gaussian (limits ignored).
+
+    ``sample_from_noise`` maps standard-normal noise deterministically (inverse CDF for ``"reject"``), so
+    QRS sampling works. DOFs with σ = 0 stay put and are left out of ``log_prob``.
+
+    Args:
+        sigma: per-DOF std ``(D,)`` or scalar (rad or m per frame).
+        lower, upper: ``(D,)`` limits (default ±inf).
+        limits: ``"reject"``, ``"reflect"``, ``"clamp"`` or ``"none"``.
+        max_tries: rejection rounds before the inverse-CDF fallback.
+
+    Example::
+
+        walk = AngularRandomWalk.from_skeleton(skel, fps=30.0)
+        x1 = walk.sample(x0, torch.Generator().manual_seed(0))
+    """
+
+    _LIMITS = ("reject", "reflect", "clamp", "none")
+
+    def __init__(self, sigma, lower=None, upper=None, *, limits: str = "reject", max_tries: int = 50):
+        super().__init__()
+        if limits not in self._LIMITS:
+            raise ValueError(f"limits must be one of {self._LIMITS}, got {limits!r}")
+        if max_tries < 0:
+            raise ValueError("max_tries must be >= 0")
+        sigma = _as_buffer(sigma, "sigma")
+        self.register_buffer("sigma", sigma)
+        inf = torch.tensor(math.inf, dtype=torch.float64)
+        lo = -inf if lower is None else torch.as_tensor(lower, dtype=torch.float64).clone()
+        hi = inf if upper is None else torch.as_tensor(upper, dtype=torch.float64).clone()
+        if bool((lo > hi).any()):
+            raise ValueError("lower must be <= upper")
+        self.register_buffer("lower", lo)
+        self.register_buffer("upper", hi)
+        self.limits = limits
+        self.max_tries = int(max_tries)
+
+    @classmethod
+    def from_skeleton(
+        cls,
+        skeleton,
+        sigma=None,
+        *,
+        fps: float = 5.0,
+        scale: float = 1.0,
+        limits: str = "reject",
+        max_tries: int = 50,
+    ) -> AngularRandomWalk:
+        """Walk on ``skeleton``'s DOFs and limits; ``sigma`` defaults to :func:`table5_sigma` (``fps``)."""
+        if sigma is None:
+            sigma = table5_sigma(skeleton, fps, scale)
+        return cls(sigma, skeleton.lower, skeleton.upper, limits=limits, max_tries=max_tries)
+
+    def _params(self, x: Tensor):
+        sig, lo, hi = (t.to(device=x.device, dtype=x.dtype) for t in (self.sigma, self.lower, self.upper))
+        if sig.ndim == 1 and sig.shape[0] != x.shape[-1]:
+            raise ValueError(f"sigma has {sig.shape[0]} entries, particles have D={x.shape[-1]}")
+        return sig.expand(x.shape[-1:]), lo.expand(x.shape[-1:]), hi.expand(x.shape[-1:])
+
+    def _fold(self, y: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
+        both = torch.isfinite(lo) & torch.isfinite(hi)
+        width = torch.where(both, hi - lo, torch.ones_like(lo))
+        z = torch.remainder(y - lo, 2 * width)
+        folded = lo + torch.where(z > width, 2 * width - z, z)
+        only_lo = torch.isfinite(lo) & ~torch.isfinite(hi)
+        only_hi = ~torch.isfinite(lo) & torch.isfinite(hi)
+        out = torch.where(both, folded, y)
+        out = torch.where(only_lo, lo + (y - lo).abs(), out)
+        return torch.where(only_hi, hi - (hi - y).abs(), out)
+
+    def sample(self, x: Tensor, generator: torch.Generator | None = None) -> Tensor:
+        """Draw ``θ_t ~ p(· | θ_{t-1} = x)``: ``(..., N, D) -> (..., N, D)``."""
+        if self.limits != "reject":
+            return self.sample_from_noise(x, _randn_like(x, generator))
+        sig, lo, hi = self._params(x)
+        y = x + sig * _randn_like(x, generator)
+        moving = sig > 0
+        bad = ((y < lo) | (y > hi)) & moving
+        for _ in range(self.max_tries):
+            n_bad = int(bad.sum())
+            if n_bad == 0:
+                return y
+            redraw = torch.randn(n_bad, generator=generator, dtype=x.dtype, device=x.device)
+            y = y.masked_scatter(bad, x[bad] + sig.expand_as(x)[bad] * redraw)
+            bad = ((y < lo) | (y > hi)) & moving
+        if bool(bad.any()):  # rare: far-out parents; finish with the exact inverse-CDF sampler
+            exact = _truncnorm_icdf(
+                x, sig.where(moving, torch.ones_like(sig)), lo, hi, _randn_like(x, generator)
+            )
+            y = torch.where(bad, exact, y)
+        return y
+
+    def sample_from_noise(self, x: Tensor, eps: Tensor) -> Tensor:
+        """Deterministic map of standard-normal ``eps (..., N, D)`` to a draw (QRS sampling)."""
+        sig, lo, hi = self._params(x)
+        eps = eps.to(x)
+        if self.limits == "reject":
+            moving = sig > 0
+            y = _truncnorm_icdf(x, torch.where(moving, sig, torch.ones_like(sig)), lo, hi, eps)
+            return torch.where(moving, y, x)
+        y = x + sig * eps
+        if self.limits == "reflect":
+            return self._fold(y, lo, hi)
+        if self.limits == "clamp":
+            return torch.maximum(torch.minimum(y, hi), lo)
+        return y
+
+    def log_prob(self, x_new: Tensor, x_old: Tensor) -> Tensor:
+        """``log p(x_new | x_old)`` ``(..., N)`` under the chosen limit handling (class docstring)."""
+        sig, lo, hi = self._params(x_new)
+        moving = sig > 0
+        s = torch.where(moving, sig, torch.ones_like(sig))
+        if self.limits == "none":
+            return _diag_normal_log_prob(x_new, x_old, sig)
+        if self.limits == "reflect":
+            per = self._reflect_log_density(x_new, x_old, s, lo, hi)
+        else:
+            z = (x_new - x_old) / s
+            per = -0.5 * z.square() - torch.log(s) - 0.5 * _LOG_2PI
+            if self.limits == "reject":
+                per = per - _log_ndtr_interval((lo - x_old) / s, (hi - x_old) / s)
+            else:  # clamp: probability masses at the bounds
+                at_lo, at_hi = x_new <= lo, x_new >= hi
+                per = torch.where(at_lo, torch.special.log_ndtr((lo - x_old) / s), per)
+                per = torch.where(at_hi, torch.special.log_ndtr((x_old - hi) / s), per)
+        outside = (x_new < lo) | (x_new > hi)
+        per = torch.where(outside, torch.full_like(per, -math.inf), per)
+        return torch.where(moving, per, torch.zeros_like(per)).sum(-1)
+
+    def _reflect_log_density(self, x: Tensor, mu: Tensor, s: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
+        """Log-density of the folded normal: the normal summed over the mirror images of ``x``."""
+        both = torch.isfinite(lo) & torch.isfinite(hi)
+        width = torch.where(both, hi - lo, torch.zeros_like(lo))
+        lo_f = torch.where(torch.isfinite(lo), lo, torch.zeros_like(lo))
+        hi_f = torch.where(torch.isfinite(hi), hi, torch.zeros_like(hi))
+        images, valid = [x], [torch.ones_like(x, dtype=torch.bool)]
+        for k in (-2, -1, 1, 2):  # periodic images (box finite on both sides)
+            images.append(x + 2 * k * width)
+            valid.append(both.expand_as(x))
+        for k in (-2, -1, 0, 1, 2):  # mirror images
+            images.append(2 * lo_f - x + 2 * k * width)
+            valid.append((torch.isfinite(lo) & (both | (k == 0))).expand_as(x))
+        # a box open below: the only mirror is about ``hi``
+        images.append(2 * hi_f - x)
+        valid.append((torch.isfinite(hi) & ~torch.isfinite(lo)).expand_as(x))
+        y = torch.stack(images)
+        z = (y - mu) / s
+        lp = -0.5 * z.square() - torch.log(s) - 0.5 * _LOG_2PI
+        lp = torch.where(torch.stack(valid), lp, torch.full_like(lp, -math.inf))
+        return torch.logsumexp(lp, 0)
+
+    def extra_repr(self) -> str:
+        return f"D={self.sigma.numel()}, limits={self.limits!r}, max_tries={self.max_tries}"
+
+
+# ----------------------------------------------------------------------------------- projected Gaussian
+
+
+def _joint_scale(joint_sigma, J: int) -> Tensor:
+    """Per-joint Cholesky factors ``(J, 3, 3)`` (float64) from a scalar, ``(J,)`` stds or ``(J, 3, 3)``."""
+    t = torch.as_tensor(joint_sigma, dtype=torch.float64)
+    if t.ndim == 0 or (t.ndim == 1 and t.shape[0] == J):
+        std = t.expand(J).clone()
+        if (std < 0).any():
+            raise ValueError("joint_sigma must be >= 0")
+        return torch.eye(3, dtype=torch.float64) * std[:, None, None]
+    if t.shape == (J, 3, 3):
+        return torch.linalg.cholesky(t)
+    raise ValueError(f"joint_sigma must be a scalar, (J,) stds or (J, 3, 3) covariances with J={J}")
+
+
+class ProjectedGaussian(nn.Module):
+    """Projected prior (Hauberg eq. 6-7): a Gaussian on joint positions, projected onto the pose manifold.
+
+    ``x̂_t ~ N(F(θ_{t-1}), Σ)`` with ``Σ = blockdiag(Σ_1 .. Σ_J)`` (one 3x3 block per joint), then
+    ``θ_t = argmin_{θ ∈ Θ} ||x̂_t - F(θ)||²`` by :func:`torchpf.ik.project` warm-started at ``θ_{t-1}``.
+
+    Its spatial variance is set per joint directly, so a hand moves no more than a shoulder unless asked
+    to, unlike :class:`AngularRandomWalk` whose joint-position variance accumulates along each chain.
+
+    Density: the law of ``θ_t`` on the manifold has no closed form (Hauberg only samples from it).
+    :meth:`log_prob` returns the **embedding-space surrogate** ``log N(F(θ_t); F(θ_{t-1}), Σ)``, the
+    Gaussian density at the projected point. It is what the data-driven proposals of
+    :mod:`priors.proposals` report as ``log_q`` under the paper's approximation, so that the correction
+    factor of Hauberg eq. 2 cancels (is treated as constant) when this prior is the filter's dynamics.
+
+    Args:
+        skeleton: the :class:`torchpf.Skeleton`.
+        joint_sigma: isotropic std per joint (scalar or ``(J,)``, m) or blocks ``Σ_l`` ``(J, 3, 3)`` (m²).
+        ik_options: keyword arguments for :func:`torchpf.ik.project` (``iters``, ``reg``, ``free`` ...).
+            Default ``{"iters": 10, "ftol": 1e-3}``: a sample needs the projection to a small fraction of
+            Σ, not to full convergence (override for a tighter solve).
+
+    Example::
+
+        prior = ProjectedGaussian(skel, joint_sigma=0.03)
+        x1 = prior.sample(x0, torch.Generator().manual_seed(0))      # (..., N, D), within the limits
+    """
+
+    def __init__(self, skeleton, joint_sigma=0.03, *, ik_options: Mapping | None = None):
+        super().__init__()
+        self.skeleton = skeleton
+        J = len(skeleton.joint_names)
+        self.register_buffer("scale_tril", _joint_scale(joint_sigma, J))
+        self.ik_options = {"iters": 10, "ftol": 1e-3, **dict(ik_options or {})}
+        self.noise_dim = 3 * J
+
+    def mean_joints(self, x: Tensor) -> Tensor:
+        """``F(θ_{t-1})``: ``(..., N, D) -> (..., N, J, 3)``."""
+        return self.skeleton.fk(x)
+
+    def sample_joints(self, x: Tensor, generator: torch.Generator | None = None) -> Tensor:
+        """Embedding-space draw ``x̂ ~ N(F(x), Σ)`` ``(..., N, J, 3)`` (before projection)."""
+        mu = self.mean_joints(x)
+        return self.joints_from_noise(mu, _randn_like(mu, generator))
+
+    def joints_from_noise(self, mu: Tensor, eps: Tensor) -> Tensor:
+        """``μ + L_l ε_l`` per joint: ``(..., J, 3), (..., J, 3) -> (..., J, 3)``."""
+        L = self.scale_tril.to(mu)
+        return mu + (L @ eps.to(mu)[..., None])[..., 0]
+
+    def project(self, joints: Tensor, x_old: Tensor) -> Tensor:
+        """Eq. 7: joint positions ``(..., N, J, 3)`` -> poses ``(..., N, D)`` by IK from ``x_old``."""
+        return ik.project(self.skeleton, joints, x_old, **self.ik_options)
+
+    def sample(self, x: Tensor, generator: torch.Generator | None = None) -> Tensor:
+        """Draw ``θ_t``: ``(..., N, D) -> (..., N, D)`` (within the joint limits)."""
+        return self.project(self.sample_joints(x, generator), x)
+
+    def sample_from_noise(self, x: Tensor, eps: Tensor) -> Tensor:
+        """Deterministic map of standard-normal ``eps (..., N, 3J)`` to a draw (QRS sampling)."""
+        mu = self.mean_joints(x)
+        return self.project(self.joints_from_noise(mu, eps.reshape(mu.shape)), x)
+
+    def log_prob_joints(self, joints: Tensor, x_old: Tensor) -> Tensor:
+        """Exact ``log N(joints; F(x_old), Σ)`` of embedding-space points: ``(..., N, J, 3) -> (..., N)``."""
+        mu = self.mean_joints(x_old)
+        L = self.scale_tril.to(mu)
+        diag = torch.diagonal(L, dim1=-2, dim2=-1)
+        moving = diag > 0  # a zero-variance axis is a Dirac: left out, like the angular priors
+        safe = torch.where(moving.all(-1)[:, None, None], L, torch.eye(3, dtype=mu.dtype, device=mu.device))
+        z = torch.linalg.solve_triangular(safe, (joints - mu)[..., None], upper=False)[..., 0]
+        per = -0.5 * z.square() - torch.log(torch.diagonal(safe, dim1=-2, dim2=-1)) - 0.5 * _LOG_2PI
+        per = torch.where(moving.all(-1)[:, None], per, torch.zeros_like(per))
+        return per.sum((-1, -2))
+
+    def log_prob(self, x_new: Tensor, x_old: Tensor) -> Tensor:
+        """Embedding-space surrogate ``log N(F(x_new); F(x_old), Σ)``, ``(..., N)`` (class docstring)."""
+        return self.log_prob_joints(self.skeleton.fk(x_new), x_old)
+
+    def extra_repr(self) -> str:
+        return f"J={self.scale_tril.shape[0]}, ik_options={self.ik_options}"

@@ -61,6 +61,6 @@ def test_entry_points_build_working_dynamics(f22):
     walk = make_dynamics("random_walk", f22, fps=5.0)
     x = walk.sample(torch.zeros(4000, 22, dtype=torch.float64), gen)
     assert torch.all(f22.within_limits(x))  # knees and elbows cannot bend backwards from 0
-    torch.testing.assert_close(walk.std, table5_sigma(f22))
+    torch.testing.assert_close(walk.sigma, table5_sigma(f22))
     with pytest.raises(ValueError, match="unknown dynamics"):
         make_dynamics("teleport", f22)

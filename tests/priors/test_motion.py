@@ -133,3 +133,171 @@ def test_constant_velocity_in_a_particle_filter_carries_velocity():
     assert abs(v.item() - 0.1) < 0.03
     assert abs(state.mean().item() - truth[-1].item()) < 0.05
     assert math.isfinite(state.log_evidence.item())
+
+
+# --------------------------------------------------------------------------------------- angular random walk
+
+import numpy as np  # noqa: E402
+from scipy import stats  # noqa: E402
+
+from priors.motion import AngularRandomWalk, ProjectedGaussian, table5_sigma  # noqa: E402
+from torchpf import Skeleton  # noqa: E402
+from torchpf.assets import path  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def human():
+    return Skeleton.from_urdf(path("human.urdf"))
+
+
+@pytest.fixture(scope="module")
+def f22():
+    return Skeleton.from_urdf(path("fontmarty22.urdf"))
+
+
+def test_fontmarty_table5_groups(human, f22):
+    s = dict(zip(human.dof_names, table5_sigma(human).tolist(), strict=True))
+    assert s["Hips_Xposition"] == 0.07 and s["Hips_Zrotation"] == 0.05
+    assert s["LeftArm_Xrotation"] == 0.1 and s["RightForeArm_Zrotation"] == 0.3
+    assert s["LeftUpLeg_Yrotation"] == 0.1 and s["RightLeg_Xrotation"] == 0.1
+    assert s["Spine_Xrotation"] == 0.05 and s["LeftHand_Xrotation"] == 0.1  # outside the table
+    f = dict(zip(f22.dof_names, table5_sigma(f22).tolist(), strict=True))
+    assert f["pelvis_tx"] == 0.07 and f["pelvis_rz"] == 0.05 and f["l_elbow_rx"] == 0.3
+    assert f["r_shoulder_ry"] == 0.1 and f["l_hip_rz"] == 0.1 and f["r_knee_rx"] == 0.1
+    # variance of a random walk grows linearly with time: 20 Hz steps have half the 5 Hz std
+    torch.testing.assert_close(table5_sigma(f22, fps=20.0), table5_sigma(f22) / 2)
+
+
+LO, HI, MU, SIG = -0.5, 0.3, 0.1, 0.4
+
+
+def _walk(limits, **kw):
+    f64 = {"dtype": torch.float64}
+    return AngularRandomWalk(
+        torch.tensor([SIG], **f64), torch.tensor([LO], **f64), torch.tensor([HI], **f64), limits=limits, **kw
+    )
+
+
+@pytest.mark.parametrize("limits", ["reject", "reflect"])
+def test_truncated_densities_integrate_to_one(limits):
+    xs = torch.linspace(LO, HI, 40001, dtype=torch.float64)[:, None]
+    lp = _walk(limits).log_prob(xs, torch.full_like(xs, MU))
+    assert abs(torch.trapezoid(lp.exp(), xs[:, 0]).item() - 1) < 1e-6
+    outside = torch.tensor([[LO - 0.01], [HI + 0.01]], dtype=torch.float64)
+    assert torch.all(_walk(limits).log_prob(outside, torch.full_like(outside, MU)) == -torch.inf)
+
+
+def test_reject_log_prob_is_scipy_truncnorm():
+    a, b = (LO - MU) / SIG, (HI - MU) / SIG
+    xs = torch.linspace(LO, HI, 7, dtype=torch.float64)[:, None]
+    ref = stats.truncnorm.logpdf(xs.numpy()[:, 0], a, b, loc=MU, scale=SIG)
+    ours = _walk("reject").log_prob(xs, torch.full_like(xs, MU))
+    np.testing.assert_allclose(ours.numpy(), ref, rtol=1e-10)
+
+
+@pytest.mark.parametrize("how", ["sample", "noise"])
+def test_reject_samples_follow_the_truncated_normal(how):
+    # Kolmogorov-Smirnov against scipy's truncated normal; with n = 20000 the 1% critical value is 0.0115.
+    g = torch.Generator().manual_seed(0)
+    x = torch.full((20000, 1), MU, dtype=torch.float64)
+    walk = _walk("reject", max_tries=3)  # few rounds: the inverse-CDF fallback is exercised too
+    y = walk.sample(x, g) if how == "sample" else walk.sample_from_noise(x, torch.randn(x.shape, generator=g))
+    a, b = (LO - MU) / SIG, (HI - MU) / SIG
+    ks = stats.kstest(y.numpy()[:, 0], stats.truncnorm(a, b, loc=MU, scale=SIG).cdf).statistic
+    assert ks < 0.0115
+    assert y.min() >= LO and y.max() <= HI
+
+
+def test_reflect_and_clamp_samples_and_masses():
+    g = torch.Generator().manual_seed(1)
+    x = torch.full((20000, 1), MU, dtype=torch.float64)
+    y = _walk("reflect").sample(x, g)
+    assert y.min() >= LO and y.max() <= HI
+    # histogram against the folded density: 8 bins of 0.1, each count binomial with sd <= 0.0035 n
+    h = torch.histc(y[:, 0], 8, LO, HI) / 20000
+    mids = torch.linspace(LO + 0.05, HI - 0.05, 8, dtype=torch.float64)[:, None]
+    p = _walk("reflect").log_prob(mids, torch.full_like(mids, MU)).exp() * 0.1
+    assert (h - p).abs().max() < 0.02  # bin-width discretisation (~0.005) + 4 sd
+    c = _walk("clamp").sample(x, g)
+    mass_hi = (c == HI).double().mean().item()
+    assert abs(mass_hi - stats.norm.sf((HI - MU) / SIG)) < 0.012  # 4 sd of a share out of 20000
+    lp = _walk("clamp").log_prob(
+        torch.tensor([[HI]], dtype=torch.float64), torch.tensor([[MU]], dtype=torch.float64)
+    )
+    assert abs(lp.exp().item() - stats.norm.sf((HI - MU) / SIG)) < 1e-9
+
+
+def test_walk_on_a_skeleton_respects_limits_and_frozen_dofs(human):
+    walk = AngularRandomWalk.from_skeleton(human, fps=5.0)
+    x = human.clamp(torch.zeros(500, len(human.dof_names)))
+    y = walk.sample(x, torch.Generator().manual_seed(2))
+    assert human.within_limits(y).all()
+    assert torch.isfinite(walk.log_prob(y, x)).all()
+    sig = table5_sigma(human)
+    sig[:3] = 0.0  # root translation frozen
+    still = AngularRandomWalk(sig, human.lower, human.upper).sample(x, torch.Generator().manual_seed(3))
+    assert torch.equal(still[:, :3], x[:, :3])
+
+
+# ---------------------------------------------------------------------------------------- projected prior
+
+
+def _chain_std(skel, particles, names):
+    P = skel.fk(particles)
+    return [P[:, skel.joint_names.index(n)].var(0).sum().sqrt().item() for n in names]
+
+
+def test_projected_prior_spread_does_not_grow_along_the_chain(human):
+    # Hauberg §1.2: with the angular walk the hand spreads more than the shoulder; with the projected prior
+    # (same isotropic 5 cm per joint) every joint's spread stays near the prescribed one. Standing pose,
+    # root fixed (σ = 0), 1000 draws: the standard errors of these stds are ~2 %.
+    chain = ["LeftShoulder", "LeftArm", "LeftForeArm", "LeftHand"]
+    x = human.clamp(torch.zeros(1000, len(human.dof_names)))
+    g = torch.Generator().manual_seed(4)
+    sig = table5_sigma(human, fps=5.0)
+    sig[:6] = 0.0
+    walk = AngularRandomWalk(sig, human.lower, human.upper).sample(x, g)
+    proj = ProjectedGaussian(human, 0.05, ik_options={"free": sig > 0}).sample(x, g)
+    s_walk, s_proj = _chain_std(human, walk, chain), _chain_std(human, proj, chain)
+    # angular walk: the spread grows at every joint down the arm, the hand ~4x the upper arm (2.0, 3.6, 8.1,
+    # 14.5 cm with these seeds)
+    assert all(b > 1.2 * a for a, b in zip(s_walk, s_walk[1:], strict=False))
+    assert s_walk[-1] > 3.0 * s_walk[1]
+    # projected (2.2, 4.1, 4.4, 3.4 cm): the hand spreads no more than the upper arm, and no joint more than
+    # an unconstrained 3-D Gaussian of 5 cm per axis would (sqrt(3) x 5 cm)
+    assert s_proj[-1] < 1.2 * s_proj[1]
+    assert max(s_proj) < 1.05 * 3**0.5 * 0.05
+    assert human.within_limits(proj).all()
+
+
+def test_projected_prior_log_prob_is_the_embedding_gaussian(f22):
+    J = len(f22.joint_names)
+    A = torch.randn(J, 3, 3, generator=torch.Generator().manual_seed(5), dtype=torch.float64)
+    cov = 1e-3 * (A @ A.transpose(-1, -2) + 0.5 * torch.eye(3, dtype=torch.float64))
+    prior = ProjectedGaussian(f22, cov)
+    x_old = f22.clamp(torch.zeros(4, len(f22.dof_names), dtype=torch.float64))
+    joints = prior.sample_joints(x_old, torch.Generator().manual_seed(6))
+    ref = (
+        torch.distributions.MultivariateNormal(f22.fk(x_old), covariance_matrix=cov).log_prob(joints).sum(-1)
+    )
+    torch.testing.assert_close(prior.log_prob_joints(joints, x_old), ref)
+    x_new = prior.project(joints, x_old)
+    torch.testing.assert_close(prior.log_prob(x_new, x_old), prior.log_prob_joints(f22.fk(x_new), x_old))
+    # zero spread: the projection returns the parent pose (its joints are on the manifold already)
+    still = ProjectedGaussian(f22, 0.0).sample(x_old, torch.Generator().manual_seed(7))
+    torch.testing.assert_close(f22.fk(still), f22.fk(x_old), atol=1e-6, rtol=0)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_priors_follow_the_particles_device():
+    f22 = Skeleton.from_urdf(path("fontmarty22.urdf")).cuda()  # own copy: the fixture stays on the CPU
+    x = f22.clamp(torch.zeros(64, len(f22.dof_names))).cuda()
+    g = torch.Generator(device="cuda").manual_seed(0)
+    walk = AngularRandomWalk.from_skeleton(f22).cuda()
+    y = walk.sample(x, g)
+    assert y.device.type == "cuda" and torch.isfinite(walk.log_prob(y, x)).all()
+    cv = ConstantVelocity(0.1).cuda()
+    z = cv.sample(x, g, extras=cv.init_extras(x))
+    assert z.device.type == "cuda"
+    p = ProjectedGaussian(f22, 0.03).sample(x, g)
+    assert p.device.type == "cuda" and f22.within_limits(p).all()

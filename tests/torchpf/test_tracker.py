@@ -175,4 +175,4 @@ def test_named_prior_gets_the_frame_rate(scene):
     tracker = Tracker(
         skel, cams, dynamics="random_walk", fps=20.0, filter="sir", n_particles=10, progress=False
     )
-    torch.testing.assert_close(torch.as_tensor(tracker.dynamics.std), table5_sigma(skel, fps=20.0))
+    torch.testing.assert_close(torch.as_tensor(tracker.dynamics.sigma), table5_sigma(skel, fps=20.0))
