@@ -362,6 +362,11 @@ class AngularRandomWalk(nn.Module):
             sigma = table5_sigma(skeleton, fps, scale)
         return cls(sigma, skeleton.lower, skeleton.upper, limits=limits, max_tries=max_tries)
 
+    @property
+    def std(self) -> Tensor:
+        """The step std ``(D,)``: the layer diffusion an annealed filter reads (Brubaker eq. 19)."""
+        return self.sigma
+
     def _params(self, x: Tensor):
         sig, lo, hi = (t.to(device=x.device, dtype=x.dtype) for t in (self.sigma, self.lower, self.upper))
         if sig.ndim == 1 and sig.shape[0] != x.shape[-1]:
