@@ -22,8 +22,8 @@ log-weights normalised with ``logsumexp``; randomness goes through an explicit `
 
 Example::
 
-    from torchpf import Skeleton
-    skel = Skeleton.from_urdf(torchpf.assets.path("human.urdf"))
+    from torchpf import Skeleton, assets
+    skel = Skeleton.from_urdf(assets.path("human.urdf"))
     joints = skel.fk(torch.zeros(1000, len(skel.dof_names)))   # (1000, J, 3)
 """
 
@@ -40,6 +40,8 @@ _LAZY = {
     "AnnealedParticleFilter": "torchpf.filters",
     "PartitionedParticleFilter": "torchpf.filters",
     "MCMCParticleFilter": "torchpf.filters",
+    "Tracker": "torchpf.tracker",
+    "TrackResult": "torchpf.tracker",
 }
 
 
@@ -47,3 +49,7 @@ def __getattr__(name):
     if name in _LAZY:
         return getattr(import_module(_LAZY[name]), name)
     raise AttributeError(f"module 'torchpf' has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(list(globals()) + list(_LAZY))

@@ -168,6 +168,12 @@ def test_mcmc_and_wrapped_dynamics_budget(scene):
     torch.testing.assert_close(torch.as_tensor(apf.filter.diffusion_std), torch.full((96,), 0.02))
 
 
+def test_public_name():
+    import torchpf
+
+    assert torchpf.Tracker is Tracker and "Tracker" in dir(torchpf)
+
+
 def test_named_prior_gets_the_frame_rate(scene):
     from priors.factories import table5_sigma
 
