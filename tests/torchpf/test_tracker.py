@@ -88,6 +88,7 @@ def test_partitioned_stages_use_partial_likelihoods(scene):
         filter="partitioned",
         n_particles=300,
         progress=False,
+        filter_options={"per_limb": False, "partial_likelihoods": True},
     )
     first, last = tracker.filter.likelihoods
     assert last is tracker.likelihood
@@ -95,6 +96,9 @@ def test_partitioned_stages_use_partial_likelihoods(scene):
     for term in first.terms.values():  # stage 1 scores the torso's bones only
         assert term.bones and all(skel.bones[c][1] in torso for c in term.bones)
     assert tracker.likelihood_evaluations == 300 and tracker.filter.n_particles == 150
+    default = Tracker(skel, cams, dynamics=walk(), filter="partitioned", n_particles=300, progress=False)
+    assert len(default.filter.groups) == 5  # torso, then a stage per limb, all with the full likelihood
+    assert all(lik is default.likelihood for lik in default.filter.likelihoods)
 
 
 def test_sequence_directory_and_csv(scene, tmp_path):
