@@ -254,7 +254,7 @@ def read_mocap_csv(
             what = "empty line" if not line.strip() else f"{n} fields"
             raise MocapFormatError(f"expected {n_cols} fields, got {what}", path=path, line=k + 2)
         tokens.extend(line.split(","))
-    data = _parse_floats(tokens, n_cols, header, path, first_line=2)
+    data = parse_float_table(tokens, n_cols, header, path, lines=2)
 
     bad = np.argwhere(~np.isfinite(data))
     if len(bad):
@@ -281,10 +281,14 @@ def read_mocap_csv(
     return names, times, np.ascontiguousarray(values)
 
 
-def _parse_floats(
-    tokens: list[str], n_cols: int, header: Sequence[str], path: str, first_line: int
+def parse_float_table(
+    tokens: list[str], n_cols: int, header: Sequence[str], path: str, lines: int | Sequence[int]
 ) -> np.ndarray:
-    """(R, n_cols) float64 from row-major string fields; names the first bad field on failure."""
+    """(R, n_cols) float64 from row-major string fields; names the first bad field on failure.
+
+    ``lines`` is the file line of the first row (rows on consecutive lines) or the line of every row; the
+    :class:`MocapFormatError` for a field that is not a number names that line and the column.
+    """
     try:
         flat = np.array(tokens, dtype=np.float64)
     except ValueError:
@@ -297,7 +301,7 @@ def _parse_floats(
                 raise MocapFormatError(
                     f"not a number: {tok.strip()!r}",
                     path=path,
-                    line=r + first_line,
+                    line=r + lines if isinstance(lines, int) else lines[r],
                     column=_column_label(c, header[c]),
                 ) from None
         raise  # numpy rejected something Python accepts: let its message through

@@ -69,7 +69,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from torchpf.io import MocapFormatError, read_mocap_csv, write_mocap_csv
+from torchpf.io import MocapFormatError, parse_float_table, read_mocap_csv, write_mocap_csv
 from torchpf.skeleton import Skeleton
 from torchpf.urdf import ROOT_TRANSLATION_LIMIT, BodyJoint, Dof, build_urdf
 
@@ -507,21 +507,7 @@ def read_bvh(path: str | os.PathLike) -> BvhData:
                 f"expected {n_ch} numbers (one per channel), got {len(row)}", path=path, line=ln
             )
         fields.extend(row)
-    try:
-        values = np.array(fields, dtype=np.float64).reshape(n_frames, n_ch)
-    except ValueError:
-        for i, tok in enumerate(fields):
-            try:
-                float(tok)
-            except ValueError:
-                r, c = divmod(i, n_ch)
-                raise MocapFormatError(
-                    f"not a number: {tok!r}",
-                    path=path,
-                    line=data_lines[r][0],
-                    column=f"{c + 1} ({channel_names[c]!r})",
-                ) from None
-        raise
+    values = parse_float_table(fields, n_ch, channel_names, path, [ln for ln, _ in data_lines])
     bad = np.argwhere(~np.isfinite(values))
     if len(bad):
         r, c = (int(v) for v in bad[0])
