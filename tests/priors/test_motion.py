@@ -146,11 +146,6 @@ from torchpf.assets import path  # noqa: E402
 
 
 @pytest.fixture(scope="module")
-def human():
-    return Skeleton.from_urdf(path("human.urdf"))
-
-
-@pytest.fixture(scope="module")
 def f22():
     return Skeleton.from_urdf(path("fontmarty22.urdf"))
 

@@ -13,11 +13,6 @@ from torchpf.assets import path
 
 
 @pytest.fixture(scope="module")
-def human():
-    return Skeleton.from_urdf(path("human.urdf"))
-
-
-@pytest.fixture(scope="module")
 def f22():
     return Skeleton.from_urdf(path("fontmarty22.urdf"))
 

@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 import torch
 
-from torchpf import assets
 from torchpf.camera import camera_ring, look_at
 from torchpf.geometry import capsule_distance, capsule_masks, project_capsules
 from torchpf.likelihoods import (
@@ -22,15 +21,14 @@ from torchpf.likelihoods import (
     SkinBlobLikelihood,
 )
 from torchpf.observations import DistanceMaps, Frame, Keypoints2D, PointCloud, Silhouettes
-from torchpf.skeleton import Skeleton
 from torchpf.synth import synthesize
 
 W, H = 160, 120
 
 
 @pytest.fixture(scope="module")
-def skel():
-    return Skeleton.from_urdf(assets.path("human.urdf"))
+def skel(human):
+    return human
 
 
 @pytest.fixture(scope="module")

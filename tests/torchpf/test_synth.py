@@ -7,11 +7,9 @@ import numpy as np
 import pytest
 import torch
 
-from torchpf import assets
 from torchpf.camera import camera_ring, look_at
 from torchpf.geometry import capsule_distance, capsule_masks, project_capsules
 from torchpf.observations import Frame, depth_to_points
-from torchpf.skeleton import Skeleton
 from torchpf.synth import (
     SynthOptions,
     load_truth_csv,
@@ -27,8 +25,8 @@ W, H = 160, 120
 
 
 @pytest.fixture(scope="module")
-def skel():
-    return Skeleton.from_urdf(assets.path("human.urdf"))
+def skel(human):
+    return human
 
 
 @pytest.fixture(scope="module")

@@ -6,14 +6,8 @@ import pytest
 import torch
 
 from torchpf import Skeleton
-from torchpf.assets import path
 from training.mocap import load_csv
 from training.synthetic import ACTIONS, generate, generate_dataset, performer_urdf, sample_style
-
-
-@pytest.fixture(scope="module")
-def human():
-    return Skeleton.from_urdf(path("human.urdf"))
 
 
 def joint(skel, positions, name):
