@@ -11,10 +11,10 @@ proposals (eq. 12-14).
 
 How it is solved:
 
-* **Jacobian.** ``method="tree"`` (default) builds it from the kinematic tree: one ``skeleton.transforms``
-  call gives each body joint's world frame, and walking back through each ball joint's run of single-DOF
-  frames gives every DOF's world axis ``a_d`` and pivot ``p_d``; the column of DOF ``d`` is
-  ``a_d x (x_j - p_d)`` (revolute) or ``a_d`` (prismatic) for the joints ``j`` below it. ``method="autograd"``
+* **Jacobian.** ``method="tree"`` (default) builds it from the kinematic tree: the FK kernel gives every
+  DOF's world axis ``a_d`` and pivot ``p_d`` with the joint positions (:meth:`Skeleton.dof_axes`: the same
+  monomial products, one rotation more); the column of DOF ``d`` is ``a_d x (x_j - p_d)`` (revolute) or
+  ``a_d`` (prismatic) for the joints ``j`` below it. ``method="autograd"``
   takes the Jacobian ``(B, 3J, D)`` of ``skeleton.fk`` by forward-mode autograd (``torch.func.jacfwd`` under
   ``vmap``) and works for any skeleton; the two agree to rounding (tested). The tree Jacobian costs about
   one FK; the autograd one about ``D`` FKs, which is why it is not the default.
@@ -22,7 +22,9 @@ How it is solved:
   inertia matrix of point masses ``w_l`` sitting at the joints, with ``μ + λ`` as joint armature, so
   ``method="tree"`` solves it exactly in ``O(J)`` per pose with the articulated-body recursion
   (Featherstone's ABA, world-frame spatial vectors, zero velocities): no ``(B, D, D)`` matrix is formed or
-  factorised. ``method="autograd"`` forms ``JᵀWJ`` and uses a batched Cholesky solve.
+  factorised. ``method="autograd"`` forms ``JᵀWJ`` and uses a batched Cholesky solve. On a CPU, without
+  autograd, the recursion runs as one fused kernel (:mod:`torchpf._aba_cpu`, numba): 4-25x faster than
+  the same recursion as tensor operations (``TORCHPF_FUSED=0`` selects those, as CUDA and autograd do).
 * **Damping / well-posedness.** ``μ`` (``reg``) keeps DOFs that no joint position constrains (the twist of
   an end segment such as the head or a finger tip) at ``θ_init`` instead of leaving the system singular;
   ``λ`` is the Levenberg-Marquardt damping, adapted per pose (×0.3 after a full step that lowered the cost,
@@ -36,11 +38,13 @@ How it is solved:
 * **Per pose.** Each pose has its own λ, step acceptance and convergence flag; a converged pose leaves the
   working set, and the loop stops when every pose has converged (``max |δθ| < tol``, a relative cost
   decrease below ``ftol``, or joints met to ~1 µm) or after ``iters`` iterations. The defaults stop at a
-  0.01 % relative cost decrease: the weakly determined DOFs (head or finger twists) may still creep, the
-  joint positions no longer move measurably; pass ``ftol=0`` and a small ``tol`` for a tight solve.
-* **Cost.** Per iteration about one FK for the frames, one for the trial point, the twists and the
-  ``O(J)`` solve. On a CPU the small-tensor bookkeeping dominates; one intra-op thread is often faster
-  than several for batches below ~10^4 poses.
+  0.1 % relative cost decrease (the RMS residual is then within ~0.05 % of its minimum, 6 µm at a 12 mm
+  noise floor): the weakly determined DOFs (head or finger twists) may still creep, the joint positions
+  no longer move measurably; pass ``ftol=0`` and a small ``tol`` for a tight solve.
+* **Cost.** Per iteration one FK with the DOF axes at the trial point (the accepted one is the next
+  linearisation point), the twists and body inertias, and the ``O(J)`` solve (two more for the poses
+  whose step crosses a bound). On a CPU one intra-op thread is often faster than several for batches
+  below ~10^4 poses.
 * **Gradients.** The iterations run without autograd. When ``targets``, ``theta_init`` or the weights
   require grad, one extra differentiable Gauss-Newton step at the solution gives ``θ̂`` the implicit-function
   derivative in its Gauss-Newton form, ``dθ̂/dx̂ = (JᵀWJ + μI)⁻¹ JᵀW`` (zero for frozen / bound-active DOFs):
@@ -57,6 +61,8 @@ Example::
 
 from __future__ import annotations
 
+import math
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -91,109 +97,53 @@ class IKResult:
 # ---------------------------------------------------------------------------------------------- structure
 
 
-def _is_identity(t) -> bool:
-    if t is None:
-        return True
-    m = t.get_matrix().reshape(4, 4).to(torch.float64)
-    return bool(torch.allclose(m, torch.eye(4, dtype=torch.float64), atol=1e-12, rtol=0))
-
-
 class _Tree:
     """Kinematic structure of a skeleton for the tree Jacobian and the articulated-body solve.
 
-    Built once per skeleton (cached on it). ``ok`` is False when the URDF does not fit the assumptions (each
-    body joint preceded by a run of single-DOF frames whose origins are the identity except the first);
-    :func:`project` then falls back to ``method="autograd"``.
+    Built once per skeleton (cached on it) from the nodes of its FK kernel (body joints and branching
+    frames, each with the run of single-DOF URDF joints above it): any skeleton that
+    :meth:`Skeleton.from_urdf` accepts.
     """
 
     def __init__(self, skeleton):
-        names = list(skeleton.joint_names)
-        J, D = len(names), len(skeleton.dof_names)
-        body = {n: i for i, n in enumerate(names)}
-        self._names = set(names)
-        dof_index = {n: i for i, n in enumerate(skeleton.dof_names)}
-        self.ok = True
-        runs: list[list[tuple[int, bool, list[float]]]] = [[] for _ in range(J)]  # chain order, root first
-        owner = [-1] * D
-
-        def walk(frame):
-            """DFS; collect each body joint's run by walking up from it."""
-            name = frame.name.strip("\n")
-            if name in body:
-                self._collect(frame, body[name], runs, owner, dof_index, parents_of)
-            for child in frame.children:
-                walk(child)
-
-        parents_of: dict[int, object] = {}
-
-        def index_parents(frame, parent):
-            parents_of[id(frame)] = parent
-            for child in frame.children:
-                index_parents(child, frame)
-
-        index_parents(skeleton.chain._root, None)
-        walk(skeleton.chain._root)
-        if any(o < 0 for o in owner):
-            self.ok = False  # a DOF outside every run (e.g. below a non-body branching frame)
-
+        J, D = len(skeleton.joint_names), len(skeleton.dof_names)
+        parent = list(skeleton._node_parent)
+        runs = [list(r) for r in skeleton._node_dofs]
+        node_of_joint = skeleton._body_rows.tolist()
+        M = len(parent)
         self.J, self.D = J, D
-        self.parents = list(skeleton.parents)
-        self.runs = runs
-        owner_t = torch.tensor(owner, dtype=torch.long)
-        self.owner = owner_t
-        # desc[c, j]: body joint j lies in the subtree of body joint c (c included).
-        desc = torch.zeros(J, J, dtype=torch.bool)
-        for j in range(J):
-            c = j
-            while c >= 0:
-                desc[c, j] = True
-                c = self.parents[c]
-        self.desc = desc
-        self.dof_mask = desc[owner_t.clamp(min=0)] if self.ok else None  # (D, J): joints moved by each DOF
+        # desc[a, b]: node b lies in the subtree of node a (a included); parents come first in level order
+        desc = torch.zeros(M, M, dtype=torch.bool)
+        for b in range(M):
+            a = b
+            while a >= 0:
+                desc[a, b] = True
+                a = parent[a]
+        dof_node = torch.full((D,), -1, dtype=torch.long)
+        for n, run in enumerate(runs):
+            for d in run:
+                dof_node[d] = n
+        # (D, J): the joints each DOF moves; a DOF below every body joint moves none
+        self.dof_mask = desc[dof_node.clamp(min=0)][:, node_of_joint] & (dof_node >= 0)[:, None]
+        self.revolute = skeleton._dof_revolute.clone()
 
-        # Walk-back steps: step s handles, for every body joint with more than s DOFs, the s-th DOF from the
-        # end of its run (the body joint's own frame first). Step s's nodes are a subset of step s-1's:
-        # ``sub`` gives their positions there, so the running rotations are narrowed, never scattered.
-        self.steps = []
-        prev: list[int] = []
-        order: list[int] = []  # DOFs in the order the steps produce their twists
-        for s in range(max((len(r) for r in runs), default=0)):
-            nodes = [c for c in range(J) if len(runs[c]) > s]
-            sub = [prev.index(c) for c in nodes] if s else nodes
-            dofs = [runs[c][-1 - s][0] for c in nodes]
-            rev = [runs[c][-1 - s][1] for c in nodes]
-            axes = [runs[c][-1 - s][2] for c in nodes]
-            order += dofs
-            self.steps.append(
-                (
-                    torch.tensor(sub, dtype=torch.long),
-                    torch.tensor(dofs, dtype=torch.long),
-                    torch.tensor(rev, dtype=torch.bool),
-                    torch.tensor(axes, dtype=torch.float64),
-                )
-            )
-            prev = nodes
-        if self.ok and sorted(order) != list(range(D)):
-            self.ok = False
-        self.twist_gather = torch.argsort(torch.tensor(order, dtype=torch.long)) if self.ok else None
+        # Bodies of the articulated-body recursion: the nodes that own DOFs. A joint at a node without DOFs
+        # (an end site) is a point mass on the body of its nearest ancestor that has some (``point_body``;
+        # -1: moved by no DOF, dropped). Bodies are grouped by depth, each body's DOFs padded to the level's
+        # widest run (index D = a dummy DOF with zero twist), each parent given as a position in the level
+        # above; ``delta_gather`` picks every real DOF out of the levels' concatenated solutions.
+        bodies = [n for n in range(M) if runs[n]]
+        body_pos = {n: i for i, n in enumerate(bodies)}
 
-        # Levels for the articulated-body recursion. Its bodies are the body joints that own DOFs; a joint
-        # without DOFs (an end site) is a point mass on the body of its nearest ancestor that has some
-        # (``point_body``; -1: moved by no DOF, dropped). Bodies are grouped by depth, each body's DOFs padded
-        # to the level's widest run (index D = a dummy DOF with zero twist), each parent given as a position
-        # in the level above; ``delta_gather`` picks every real DOF out of the levels' concatenated solutions.
-        bodies = [j for j in range(J) if runs[j]]
-        body_pos = {j: i for i, j in enumerate(bodies)}
+        def body_above(n):
+            while n >= 0 and n not in body_pos:
+                n = parent[n]
+            return body_pos.get(n, -1)
 
-        def body_above(j):
-            while j >= 0 and j not in body_pos:
-                j = self.parents[j]
-            return body_pos.get(j, -1)
-
-        self.point_body = torch.tensor([body_above(j) for j in range(J)], dtype=torch.long)
-        body_parent = [body_above(self.parents[j]) if self.parents[j] >= 0 else -1 for j in bodies]
+        self.point_body = torch.tensor([body_above(n) for n in node_of_joint], dtype=torch.long)
+        body_parent = [body_above(parent[n]) for n in bodies]
         depth: list[int] = []
-        for i in range(len(bodies)):  # parents come first (joint_names order)
+        for i in range(len(bodies)):  # parents come first (level order)
             depth.append(0 if body_parent[i] < 0 else depth[body_parent[i]] + 1)
         self.n_bodies = len(bodies)
         self.levels = []
@@ -207,8 +157,7 @@ class _Tree:
             k = max(len(runs[bodies[i]]) for i in members)
             dofs = torch.full((len(members), k), D, dtype=torch.long)
             for p, i in enumerate(members):
-                for col, (dof, _, _) in enumerate(runs[bodies[i]]):
-                    dofs[p, col] = dof
+                dofs[p, : len(runs[bodies[i]])] = torch.tensor(runs[bodies[i]])
             flat += dofs.reshape(-1).tolist()
             parent_pos = torch.tensor(
                 [pos_in_level.get(body_parent[i], 0) for i in members], dtype=torch.long
@@ -217,53 +166,28 @@ class _Tree:
                 (torch.tensor(members, dtype=torch.long), dofs.reshape(-1), k, parent_pos, d > 0)
             )
             self.n_bodies_at.append(len(members))
-        if self.ok:
-            where = {dof: i for i, dof in enumerate(flat) if dof < D}
-            self.delta_gather = torch.tensor([where[dof] for dof in range(D)], dtype=torch.long)
+        self.body_runs = [runs[n] for n in bodies]
+        self.body_parent = body_parent
+        self._kernel_structure = None
+        where = {dof: i for i, dof in enumerate(flat) if dof < D}
+        # a DOF in no body's run solves to 0 (it points at a padding slot, whose solution is 0)
+        pad = next((i for i, dof in enumerate(flat) if dof >= D), len(flat))
+        self.delta_gather = torch.tensor([where.get(dof, pad) for dof in range(D)], dtype=torch.long)
         self._device_cache: dict = {}
 
-    def _collect(self, frame, c, runs, owner, dof_index, parents_of):
-        """Run of DOFs above body joint ``c``: walk up until the parent body joint (or the root)."""
-        run = []
-        f = frame
-        while f is not None:
-            joint = f.joint
-            if joint.joint_type in ("revolute", "prismatic"):
-                d = dof_index[joint.name]
-                run.append(
-                    (d, joint.joint_type == "revolute", joint.axis.detach().double().reshape(3).tolist())
-                )
-                owner[d] = c
-            parent = parents_of[id(f)]
-            if parent is None or parent.name.strip("\n") in self._names:
-                break
-            # Stepping past this frame's origin to its parent: only exact when the origin is the identity.
-            if not (_is_identity(joint.offset) and _is_identity(f.link.offset)):
-                if any(jt in ("revolute", "prismatic") for jt in self._movable_above(parent, parents_of)):
-                    self.ok = False
-            f = parent
-        run.reverse()
-        runs[c] = run
+    def kernel_structure(self):
+        """The tree for the fused CPU kernel (:mod:`torchpf._aba_cpu`), built on first use."""
+        if self._kernel_structure is None:
+            from torchpf import _aba_cpu
 
-    def _movable_above(self, frame, parents_of):
-        """Joint types from ``frame`` up to (excluding) the next body joint."""
-        out = []
-        f = frame
-        while f is not None and f.name.strip("\n") not in self._names:
-            out.append(f.joint.joint_type)
-            f = parents_of[id(f)]
-        return out
+            self._kernel_structure = _aba_cpu.Structure(self.body_runs, self.body_parent)
+        return self._kernel_structure
 
     def on(self, device, dtype) -> dict:
         """The index and constant tensors on ``device`` (floats in ``dtype``), cached."""
         key = (device, dtype)
         c = self._device_cache.get(key)
         if c is None:
-            steps = []
-            for sub, dofs, rev, axes in self.steps:
-                a = axes.to(device=device, dtype=dtype)
-                K = _skew(a, dim=-1)
-                steps.append((sub.to(device), dofs.to(device), rev.to(device), a, K, K @ K))
             levels = []
             for li, (members, dofs, k, parent_pos, has) in enumerate(self.levels):
                 valid = (dofs < self.D).to(dtype)
@@ -285,11 +209,11 @@ class _Tree:
                 )
             dof_mask = self.dof_mask.to(device=device, dtype=dtype)
             c = {
-                "steps": steps,
                 "levels": levels,
                 "dof_mask": dof_mask,  # (D, J)
                 "anc_mask": dof_mask.t().contiguous(),  # (J, D)
-                "twist_gather": self.twist_gather.to(device),
+                "revolute": self.revolute.to(device),
+                "revf": self.revolute.to(device=device, dtype=dtype)[:, None, None],
                 "delta_gather": self.delta_gather.to(device),
                 # (n_bodies + 1, J) 0/1: which body carries each joint's point mass (points moved by no DOF go
                 # to the extra last row, which no level reads); a product with it sums points per body
@@ -299,12 +223,34 @@ class _Tree:
                     torch.ones(self.J, dtype=dtype),
                 )
                 .to(device),
-                "step0_nodes": torch.tensor(
-                    [c for c in range(self.J) if self.runs[c]], dtype=torch.long, device=device
-                ),
+                "inertia_index": _inertia_index().to(device),
             }
             self._device_cache[key] = c
         return c
+
+
+def _inertia_index() -> Tensor:
+    """(36,) rows of the 6x6 spatial inertia (row-major) in ``[M, -M, 0, Syy+Szz, Sxx+Szz, Sxx+Syy]``.
+
+    ``M`` = the point-mass moments ``(m, hx, hy, hz, Sxx, Syy, Szz, Sxy, Sxz, Syz)`` (``m = Σ w``,
+    ``h = Σ w y``, ``S = Σ w y yᵀ``); the inertia is ``[[tr(S) I - S, [h]x], [-[h]x, m I]]`` (the sum of
+    ``w [[-[y]x², [y]x], [-[y]x, I]]``).
+    """
+    pos = {"m": 0, "hx": 1, "hy": 2, "hz": 3, "Sxy": 7, "Sxz": 8, "Syz": 9}
+    zero, diag = 20, (21, 22, 23)
+
+    def at(name, sign=1):
+        return pos[name] + (10 if sign < 0 else 0)
+
+    rows = [
+        [diag[0], at("Sxy", -1), at("Sxz", -1), zero, at("hz", -1), at("hy")],
+        [at("Sxy", -1), diag[1], at("Syz", -1), at("hz"), zero, at("hx", -1)],
+        [at("Sxz", -1), at("Syz", -1), diag[2], at("hy", -1), at("hx"), zero],
+        [zero, at("hz"), at("hy", -1), at("m"), zero, zero],
+        [at("hz", -1), zero, at("hx"), zero, at("m"), zero],
+        [at("hy"), at("hx", -1), zero, zero, zero, at("m")],
+    ]
+    return torch.tensor(rows, dtype=torch.long).reshape(36)
 
 
 def _tree(skeleton) -> _Tree:
@@ -316,17 +262,6 @@ def _tree(skeleton) -> _Tree:
     return tree
 
 
-def _skew(a: Tensor, dim: int = 1) -> Tensor:
-    """Cross-product matrices of the 3-vectors along ``dim``; the 3x3 replaces that dim (``dim, dim+1``)."""
-    dim = dim % a.ndim
-    x, y, z = a.unbind(dim)
-    o = torch.zeros_like(x)
-    m = torch.stack([o, -z, y, z, o, -x, -y, x, o], dim)
-    shape = list(a.shape)
-    shape[dim : dim + 1] = [3, 3]
-    return m.reshape(shape)
-
-
 # ------------------------------------------------------------------------------------------------- layout
 #
 # Inside the solver every per-pose quantity is stored *batch last*: ``(D, B)``, ``(J, 3, B)``,
@@ -336,103 +271,117 @@ def _skew(a: Tensor, dim: int = 1) -> Tensor:
 # choice as the FK kernel in :mod:`torchpf.skeleton`).
 
 
-def _mv(M: Tensor, v: Tensor) -> Tensor:
-    """``(..., i, j, B) @ (..., j, B) -> (..., i, B)``."""
-    return (M * v.unsqueeze(-3)).sum(-2)
-
-
 def _frames(skeleton, th: Tensor) -> tuple[Tensor, Tensor]:
-    """World rotations ``(J, 3, 3, B)`` and positions ``(J, 3, B)`` of the body joints at ``th (B, D)``."""
-    T = skeleton.transforms(th)  # (B, J, 4, 4)
-    return T[..., :3, :3].permute(1, 2, 3, 0), T[..., :3, 3].permute(1, 2, 0)
+    """DOF axes and pivots ``(D, 2, 3, B)`` and joint positions ``(J, 3, B)`` at ``th (B, D)``."""
+    world, axes, pivots = skeleton._world(th, axes=True)
+    return torch.stack([axes, pivots], 1), skeleton._body(world[:, :, 3], th)
 
 
-def _twists(tree: _Tree, q: Tensor, R: Tensor, rel: Tensor) -> Tensor:
-    """World twists ``(D, 6, B)`` = (ω, v) of every DOF, about a per-pose centre.
+def _twists(tree: _Tree, ap: Tensor, centre: Tensor) -> Tensor:
+    """World twists ``(D, 6, B)`` = (ω, v) of every DOF about a per-pose ``centre (3, B)``.
 
     A point at ``y`` (relative to the centre) moved by DOF ``d`` has velocity ``v_d + ω_d x y`` per unit
-    ``δθ_d``. ``q (D, B)`` pose, ``R (J, 3, 3, B)`` body-joint rotations, ``rel (J, 3, B)`` body-joint
-    positions relative to the centre.
-
-    Each body joint's run of single-DOF frames is walked back from the body joint's own frame: the world axis
-    of a DOF is ``R a_local`` with ``R`` the rotation of the frame right below that DOF (rotating about an
-    axis leaves it fixed), its pivot is that frame's origin; then ``R <- R Rot(a_local, -q)`` (revolute) or
-    ``t <- t - a q`` (prismatic) gives the frame above.
+    ``δθ_d``: revolute ``ω = a``, ``v = p x a`` (axis ``a``, pivot ``p`` relative to the centre), prismatic
+    ``ω = 0``, ``v = a``.
     """
-    c = tree.on(q.device, q.dtype)
-    idx = c["step0_nodes"]
-    Rc, tc = R.index_select(0, idx), rel.index_select(0, idx)
-    eye = torch.eye(3, dtype=q.dtype, device=q.device)[None, :, :, None]
-    parts = []
-    for s, (sub, dofs, rev, a_loc, K, K2) in enumerate(c["steps"]):
-        if s:
-            Rc, tc = Rc.index_select(0, sub), tc.index_select(0, sub)
-        a = (Rc * a_loc[:, None, :, None]).sum(2)  # (n, 3, B) = R @ a_local
-        qs = q.index_select(0, dofs)  # (n, B)
-        revf = rev.to(q.dtype)[:, None, None]
-        # revolute: ω = a, v = p x a (p the pivot); prismatic: ω = 0, v = a
-        v = torch.where(rev[:, None, None], torch.linalg.cross(tc, a, dim=1), a)
-        parts.append(torch.cat([a * revf, v], 1))
-        if s + 1 < len(c["steps"]):
-            # Rot(a_local, -q) = I - sin(q) K + (1 - cos(q)) K²; identity for a prismatic DOF
-            sn = torch.where(rev[:, None], torch.sin(qs), torch.zeros_like(qs))[:, None, None]
-            cm = torch.where(rev[:, None], 1 - torch.cos(qs), torch.zeros_like(qs))[:, None, None]
-            back = eye - sn * K[..., None] + cm * K2[..., None]  # (n, 3, 3, B)
-            Rc = (Rc[:, :, :, None] * back[:, None]).sum(2)
-            tc = torch.where(rev[:, None, None], tc, tc - a * qs[:, None])
-    return torch.cat(parts, 0).index_select(0, c["twist_gather"])
+    c = tree.on(ap.device, ap.dtype)
+    a = ap[:, 0]
+    v = torch.where(c["revf"] > 0, _cross(ap[:, 1] - centre, a), a)
+    return torch.cat([a * c["revf"], v], 1)
+
+
+def _cross(a: Tensor, b: Tensor, dim: int = 1) -> Tensor:
+    """Cross product along ``dim`` (size 3), broadcasting; several times faster than ``torch.linalg.cross``
+    on batch-last layouts on a CPU."""
+    a0, a1, a2 = a.unbind(dim)
+    b0, b1, b2 = b.unbind(dim)
+    return torch.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], dim)
+
+
+def _dot(a: Tensor, b: Tensor, dim: int) -> Tensor:
+    """``Σ_j a_j b_j`` over ``dim`` (a short dim, the same size in both), with broadcasting.
+
+    Accumulated with ``addcmul`` one slice at a time: no temporary the size of the broadcast product, which
+    is what bounds the speed of these small contractions on a CPU.
+    """
+    if math.prod(torch.broadcast_shapes(a.shape, b.shape)) < _SMALL:
+        return (a * b).sum(dim)  # small batch: fewer operations beat smaller temporaries
+    pairs = zip(a.unbind(dim), b.unbind(dim), strict=True)
+    x, y = next(pairs)
+    out = x * y
+    for x, y in pairs:
+        out = torch.addcmul(out, x, y)
+    return out
+
+
+_SMALL = 1 << 13
 
 
 def _point_velocities(tw: Tensor, rel: Tensor, anc_mask: Tensor, delta: Tensor) -> Tensor:
     """``J δ``: joint displacements ``(J, 3, B)`` for a step ``delta (D, B)`` (linearised)."""
     D, _, B = tw.shape
     V = (anc_mask @ (tw * delta[:, None]).reshape(D, 6 * B)).reshape(-1, 6, B)  # summed twist per joint
-    return V[:, 3:] + torch.linalg.cross(V[:, :3], rel, dim=1)
+    return V[:, 3:] + _cross(V[:, :3], rel)
 
 
-def _gradient(tw: Tensor, rel: Tensor, w: Tensor, r: Tensor, dof_mask: Tensor) -> Tensor:
-    """``Jᵀ W r`` ``(D, B)``: per DOF, its twist dotted with the wrench of the joints below it."""
-    J, _, B = rel.shape
+def _wrenches(rel: Tensor, w: Tensor, r: Tensor) -> Tensor:
+    """Spatial forces ``(J, 6, B)`` = (moment, force) of the forces ``w_l r_l`` at the joints ``rel``."""
     wr = w[:, None] * r
-    wrench = torch.cat([torch.linalg.cross(rel, wr, dim=1), wr], 1)  # (J, 6, B)
+    return torch.cat([_cross(rel, wr), wr], 1)
+
+
+def _gradient(tw: Tensor, wrench: Tensor, dof_mask: Tensor) -> Tensor:
+    """``Jᵀ W r`` ``(D, B)``: per DOF, its twist dotted with the wrenches (:func:`_wrenches`) below it."""
+    J, _, B = wrench.shape
     sub = (dof_mask @ wrench.reshape(J, 6 * B)).reshape(-1, 6, B)
-    return (tw * sub).sum(1)
+    return _dot(tw, sub, 1)
+
+
+# Symmetric 3x3 inverse by cofactors, on the row-major entries m0..m8: cofactor c_ij = m[p] m[q] - m[r] m[s]
+# (rows ``_COF``), determinant = row 0 of M dotted with row 0 of the cofactors.
+_COF = torch.tensor(
+    [[4, 8, 5, 7], [5, 6, 3, 8], [3, 7, 4, 6], [2, 7, 1, 8], [0, 8, 2, 6], [1, 6, 0, 7], [1, 5, 2, 4],
+     [2, 3, 0, 5], [0, 4, 1, 3]]
+).t().contiguous()  # fmt: skip
 
 
 def _inv_small(M: Tensor) -> Tensor:
     """Inverse of SPD matrices ``M (n, k, k, B)``: closed form for k <= 3, batched LAPACK otherwise."""
-    k = M.shape[1]
+    n, k, _, B = M.shape
     if k == 1:
         return 1.0 / M
+    if k == 3:
+        flat = M.reshape(n, 9, B)
+        idx = _COF.to(M.device)
+        cof = flat.index_select(1, idx[0]) * flat.index_select(1, idx[1])
+        cof = cof - flat.index_select(1, idx[2]) * flat.index_select(1, idx[3])  # (n, 9, B) row-major
+        det = _dot(flat[:, :3], cof[:, :3], 1)
+        # adj(M) = cofactorsᵀ = cofactors for a symmetric M
+        return (cof / det[:, None]).view(n, 3, 3, B)
     if k == 2:
         a, b, c, d = M[:, 0, 0], M[:, 0, 1], M[:, 1, 0], M[:, 1, 1]
         det = a * d - b * c
         return torch.stack([torch.stack([d, -b], 1), torch.stack([-c, a], 1)], 1) / det[:, None, None]
-    if k == 3:
-        # adjugate from cross products of the rows: row i of adj(M)ᵀ is r_{i+1} x r_{i+2}
-        r1, r2 = M.roll(-1, 1), M.roll(-2, 1)
-        cof = torch.linalg.cross(r1, r2, dim=2)  # (n, 3, 3, B) cofactor rows
-        det = (M[:, 0] * cof[:, 0]).sum(1)
-        return cof.transpose(1, 2) / det[:, None, None]
     # wider runs (a floating root): batched LAPACK on (n B, k, k); few such bodies per tree
-    n, _, _, B = M.shape
     inv = torch.linalg.inv_ex(M.permute(0, 3, 1, 2).reshape(n * B, k, k))[0]
     return inv.reshape(n, B, k, k).permute(0, 2, 3, 1)
 
 
 def _body_inertia(tree: _Tree, rel: Tensor, w: Tensor) -> Tensor:
-    """Spatial inertias ``(n_bodies + 1, 6, 6, B)`` of the joints as point masses, summed per body.
+    """Spatial inertias ``(n_bodies + 1, 6, 6, B)`` of the joints as point masses ``w`` at ``rel``, per body.
 
-    A point mass ``w`` at ``y``: ``w GᵀG`` with ``G = [-[y]_x, I]`` (so that ``ẏ = G (ω, v)``), i.e.
-    ``w [[-[y]², [y]], [-[y], I]]``. The last row collects points that no DOF moves.
+    Summed as moments ``(Σ w, Σ w y, Σ w y yᵀ)`` per body, then arranged (:func:`_inertia_index`) as
+    ``[[tr(S) I - S, [h]x], [-[h]x, m I]]``. The last row collects points that no DOF moves.
     """
     c = tree.on(rel.device, rel.dtype)
-    X = _skew(rel, dim=1)  # (J, 3, 3, B)
-    XX = (X[:, :, :, None] * X[:, None, :, :]).sum(2)
-    eye = torch.eye(3, dtype=rel.dtype, device=rel.device)[None, :, :, None].expand_as(X)
-    point = torch.cat([torch.cat([-XX, X], 2), torch.cat([-X, eye], 2)], 1) * w[:, None, None]
     J, B = rel.shape[0], rel.shape[-1]
-    return (c["point_body"] @ point.reshape(J, 36 * B)).view(-1, 6, 6, B)
+    wy = w[:, None] * rel
+    moments = torch.cat([w[:, None], wy, wy * rel, wy[:, [0, 0, 1]] * rel[:, [1, 2, 2]]], 1)  # (J, 10, B)
+    M = (c["point_body"] @ moments.reshape(J, 10 * B)).view(-1, 10, B)
+    S = M[:, 4:7]
+    diag = S.sum(1, keepdim=True) - S  # tr(S) - S_ii
+    table = torch.cat([M, -M, torch.zeros_like(M[:, :1]), diag], 1)
+    return table.index_select(1, c["inertia_index"]).view(-1, 6, 6, B)
 
 
 def _aba_solve(
@@ -445,13 +394,14 @@ def _aba_solve(
     arm: Tensor,
     free: Tensor,
     inertia: Tensor | None = None,
+    wrench: Tensor | None = None,
 ) -> Tensor:
     """Solve ``(JᵀWJ + diag(arm)) δ = JᵀW r + tau`` over the ``free`` DOFs (others get ``δ = 0``), ``O(J)``.
 
     Batch-last arguments: ``tw (D, 6, B)`` twists, ``rel (J, 3, B)`` joint positions about the centre,
     ``w (J, B)`` weights, ``r (J, 3, B)`` residuals (target - position), ``tau (D, B)`` extra right-hand side,
-    ``arm (D, B)`` diagonal, ``free (D, B)`` bool; ``inertia`` from :func:`_body_inertia` (computed when not
-    given). Returns ``δ (D, B)``.
+    ``arm (D, B)`` diagonal, ``free (D, B)`` bool; ``inertia`` from :func:`_body_inertia` and ``wrench``
+    from :func:`_wrenches` (computed when not given). Returns ``δ (D, B)``.
 
     ``JᵀWJ + diag(arm)`` is the joint-space inertia matrix of point masses ``w_l`` at the joints with
     armature ``arm``, and ``JᵀW r`` the joint torque of the forces ``w_l r_l`` applied at the joints. So ``δ``
@@ -462,9 +412,14 @@ def _aba_solve(
     D, _, B = tw.shape
     if inertia is None:
         inertia = _body_inertia(tree, rel, w)
+    if wrench is None:
+        wrench = _wrenches(rel, w, r)
     freef = free.to(tw.dtype)
-    point_force = torch.cat([torch.linalg.cross(rel, r, dim=1), r], 1) * w[:, None]  # (J, 6, B)
-    force = (c["point_body"] @ point_force.reshape(-1, 6 * B)).view(-1, 6, B)
+    force = (c["point_body"] @ wrench.reshape(-1, 6 * B)).view(-1, 6, B)
+    if _fused_kernel_applies(tw, inertia, force, tau, arm):
+        from torchpf import _aba_cpu
+
+        return _aba_cpu.aba_solve(tree.kernel_structure(), tw, inertia, force, tau, arm, freef)
 
     levels = c["levels"]
     saved = [None] * len(levels)
@@ -481,19 +436,18 @@ def _aba_solve(
         # zero right-hand side, so it solves to 0
         on = (freef.index_select(0, dofs) * valid[:, None]).reshape(n, k, B)
         St = tw.index_select(0, dofs).reshape(n, k, 6, B) * on[:, :, None]  # motion subspace, row per DOF
-        Ut = (Ia[:, None] * St[:, :, None]).sum(3)  # (I S)ᵀ: (n, k, 6, B)
-        Dm = (St[:, :, None] * Ut[:, None]).sum(3)  # Sᵀ I S: (n, k, k, B)
+        Ut = _dot(Ia[:, None], St[:, :, None], 3)  # (I S)ᵀ: (n, k, 6, B)
+        Dm = _dot(St[:, :, None], Ut[:, None], 3)  # Sᵀ I S: (n, k, k, B)
         arm_k = torch.where(on > 0, arm.index_select(0, dofs).reshape(n, k, B), torch.ones_like(on))
-        eye_k = torch.eye(k, dtype=tw.dtype, device=tw.device)[None, :, :, None]
-        Dm = Dm + eye_k * arm_k[:, :, None]
-        u = tau.index_select(0, dofs).reshape(n, k, B) * on - (St * pa[:, None]).sum(2)
+        Dm.diagonal(0, 1, 2).add_(arm_k.transpose(1, 2))
+        u = tau.index_select(0, dofs).reshape(n, k, B) * on - _dot(St, pa[:, None], 2)
         Dinv = _inv_small(Dm)
-        Dinv_u = (Dinv * u[:, None]).sum(2)  # (n, k, B)
-        Dinv_Ut = (Dinv[:, :, :, None] * Ut[:, None]).sum(2)  # (n, k, 6, B)
+        Dinv_u = _dot(Dinv, u[:, None], 2)  # (n, k, B)
+        Dinv_Ut = _dot(Dinv[:, :, :, None], Ut[:, None], 2)  # (n, k, 6, B)
         saved[li] = (St, Dinv_u, Dinv_Ut)
         if P is not None:
-            Ic = Ia - (Ut[:, :, :, None] * Dinv_Ut[:, :, None]).sum(1)
-            pc = pa + (Ut * Dinv_u[:, :, None]).sum(1)
+            Ic = Ia - _dot(Ut[:, :, :, None], Dinv_Ut[:, :, None], 1)
+            pc = pa + _dot(Ut, Dinv_u[:, :, None], 1)
             child[li - 1] = (
                 (P @ Ic.reshape(n, -1)).view(-1, 6, 6, B),
                 (P @ pc.reshape(n, -1)).view(-1, 6, B),
@@ -505,13 +459,28 @@ def _aba_solve(
         St, Dinv_u, Dinv_Ut = saved[li]
         if P is not None:
             a_par = acc.index_select(0, parent_pos)  # (n, 6, B) spatial acceleration of the parent
-            qdd = Dinv_u - (Dinv_Ut * a_par[:, None]).sum(2)
-            acc = a_par + (St * qdd[:, :, None]).sum(1)
+            qdd = Dinv_u - _dot(Dinv_Ut, a_par[:, None], 2)
+            acc = a_par + _dot(St, qdd[:, :, None], 1)
         else:
             qdd = Dinv_u
-            acc = (St * qdd[:, :, None]).sum(1)
+            acc = _dot(St, qdd[:, :, None], 1)
         out.append(qdd.reshape(-1, B))
     return torch.cat(out, 0).index_select(0, c["delta_gather"]) * freef
+
+
+def _fused_kernel_applies(*tensors: Tensor) -> bool:
+    """Whether :func:`_aba_solve` may run the fused CPU kernel: CPU float tensors, no autograd through them,
+    numba installed (``TORCHPF_FUSED=0`` in the environment turns it off)."""
+    t0 = tensors[0]
+    if t0.device.type != "cpu" or t0.dtype not in (torch.float32, torch.float64):
+        return False
+    if torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
+        return False
+    if os.environ.get("TORCHPF_FUSED", "1") == "0":
+        return False
+    from torchpf import _aba_cpu
+
+    return _aba_cpu.AVAILABLE
 
 
 def _dense_solve(Jac: Tensor, w: Tensor, r: Tensor, tau: Tensor, arm: Tensor, free: Tensor) -> Tensor:
@@ -538,20 +507,15 @@ def tree_jacobian(skeleton, theta: Tensor) -> Tensor:
     """Jacobian of :meth:`Skeleton.fk` from the kinematic tree: ``(..., D) -> (..., J, 3, D)``.
 
     Column ``d`` is ``a_d x (x_j - p_d)`` (revolute) or ``a_d`` (prismatic) for the joints ``j`` below DOF
-    ``d`` and zero elsewhere (world axis ``a_d``, pivot ``p_d``). Raises ``ValueError`` for a skeleton whose
-    structure it cannot read; :func:`autograd_jacobian` works for any.
+    ``d`` and zero elsewhere (world axis ``a_d``, pivot ``p_d``, see :meth:`Skeleton.dof_axes`).
     """
     tree = _tree(skeleton)
-    if not tree.ok:
-        raise ValueError("tree_jacobian: unsupported skeleton structure; use autograd_jacobian")
     flat = theta.reshape(-1, theta.shape[-1])
-    R, x = _frames(skeleton, flat)
+    ap, x = _frames(skeleton, flat)
     rel = x - x[:1]
-    tw = _twists(tree, flat.t(), R, rel)  # (D, 6, B)
+    tw = _twists(tree, ap, x[0])  # (D, 6, B)
     mask = tree.on(flat.device, flat.dtype)["dof_mask"]  # (D, J)
-    cols = tw[:, None, 3:] + torch.linalg.cross(
-        tw[:, None, :3].expand(-1, rel.shape[0], -1, -1), rel[None], dim=2
-    )
+    cols = tw[:, None, 3:] + _cross(tw[:, None, :3], rel[None], dim=2)
     cols = cols * mask[:, :, None, None]  # (D, J, 3, B)
     return cols.permute(3, 1, 2, 0).reshape(*theta.shape[:-1], rel.shape[0], 3, flat.shape[-1])
 
@@ -622,17 +586,18 @@ class _Problem:
         )
 
     def evaluate(self, q: Tensor):
-        """Frames, residual ``(J, 3, B)`` and cost ``(B,)`` at ``q (D, B)``."""
-        R, x = _frames(self.skeleton, q.t())
+        """DOF axes ``(D, 2, 3, B)``, positions and residual ``(J, 3, B)``, cost ``(B,)`` at ``q (D, B)``."""
+        ap, x = _frames(self.skeleton, q.t())
         r = self.g - x
         cost = (self.w * r.square().sum(1)).sum(0) + self.reg * (q - self.th0).square().sum(0)
-        return R, x, r, cost
+        return ap, x, r, cost
 
-    def linearise(self, q, R, x):
+    def linearise(self, q, ap, x):
         """What :meth:`solve` needs at ``q``: twists and body inertias (tree) or the Jacobian (autograd)."""
         if self.tree is not None:
-            rel = x - x[:1].detach()
-            tw = _twists(self.tree, q, R, rel)
+            centre = x[0].detach()
+            rel = x - centre
+            tw = _twists(self.tree, ap, centre)
             return ("tree", tw, rel, _body_inertia(self.tree, rel, self.w))
         return ("dense", autograd_jacobian(self.skeleton, q.t()))
 
@@ -643,19 +608,19 @@ class _Problem:
             return ("tree", *(t.index_select(-1, rows) for t in lin[1:]))
         return ("dense", lin[1].index_select(0, rows))
 
-    def gradient(self, lin, r, q) -> Tensor:
+    def gradient(self, lin, r, q, wrench=None) -> Tensor:
         """Descent direction of the cost, ``JᵀW r - μ (q - θ_init)``: ``(D, B)``."""
         if lin[0] == "tree":
             dof_mask = self.tree.on(q.device, q.dtype)["dof_mask"]
-            g = _gradient(lin[1], lin[2], self.w, r, dof_mask)
+            g = _gradient(lin[1], _wrenches(lin[2], self.w, r) if wrench is None else wrench, dof_mask)
         else:
             g = torch.einsum("bjkd,jkb->db", lin[1], self.w[:, None] * r)
         return g - self.reg * (q - self.th0)
 
-    def solve(self, lin, w, r, tau, arm, free) -> Tensor:
+    def solve(self, lin, w, r, tau, arm, free, wrench=None) -> Tensor:
         """``(JᵀWJ + diag(arm)) δ = JᵀW r + tau`` over ``free``: ``δ (D, B)``."""
         if lin[0] == "tree":
-            return _aba_solve(self.tree, lin[1], lin[2], w, r, tau, arm, free, inertia=lin[3])
+            return _aba_solve(self.tree, lin[1], lin[2], w, r, tau, arm, free, inertia=lin[3], wrench=wrench)
         return _dense_solve(lin[1], w.t(), r.permute(2, 0, 1), tau.t(), arm.t(), free.t()).t()
 
     def displacement(self, lin, delta) -> Tensor:
@@ -665,7 +630,7 @@ class _Problem:
             return _point_velocities(lin[1], lin[2], anc, delta)
         return torch.einsum("bjkd,db->jkb", lin[1], delta)
 
-    def step(self, q, R, x, r, lam, refine: int = 2):
+    def step(self, q, ap, x, r, lam, refine: int = 2):
         """Projected LM step ``δ (D, B)`` with an active set for the joint limits.
 
         Held: the user's frozen DOFs and those at a bound whose descent direction points outward. Then, up
@@ -673,15 +638,17 @@ class _Problem:
         pinned *at* that bound and the others re-solved against the linearised residual this leaves, so
         that the remaining DOFs compensate instead of the step simply being cut.
         """
-        lin = self.linearise(q, R, x)
+        lin = self.linearise(q, ap, x)
         lo, hi = self.lo, self.hi
         eps = 1e-9
-        grad = self.gradient(lin, r, q)
+        wrench = _wrenches(lin[2], self.w, r) if lin[0] == "tree" else None
+        grad = self.gradient(lin, r, q, wrench)
         hold = ((q <= lo + eps) & (grad <= 0)) | ((q >= hi - eps) & (grad >= 0))
         free = self.free_d & ~hold
+        free0 = free
         arm = (self.reg + lam)[None].expand_as(q)
         tau = -self.reg * (q - self.th0)
-        delta = self.solve(lin, self.w, r, tau, arm, free)
+        delta = self.solve(lin, self.w, r, tau, arm, free, wrench)
         fixed = torch.zeros_like(q)  # prescribed moves of DOFs pinned at a bound
         for _ in range(refine):
             target = q + fixed + delta
@@ -707,7 +674,9 @@ class _Problem:
             delta = delta.index_copy(-1, rows, delta_s)
             fixed = fixed.index_copy(-1, rows, fixed_s)
             free = free.index_copy(-1, rows, free_s)
-        return fixed + delta
+        # first-order optimality of the current point: the descent direction over the DOFs not held
+        stationarity = torch.where(free0, grad, torch.zeros_like(grad)).abs().amax(0)
+        return fixed + delta, stationarity
 
 
 def project(
@@ -718,7 +687,7 @@ def project(
     *,
     iters: int = 30,
     tol: float = 1e-4,
-    ftol: float = 1e-4,
+    ftol: float = 1e-3,
     reg: float = 1e-5,
     damping: float = 1e-3,
     free: Tensor | Sequence[str] | None = None,
@@ -745,8 +714,7 @@ def project(
         free: DOFs to optimise, a ``(D,)`` bool mask or a list of DOF names; the others stay at ``θ_init``
             (clamped). Default: all.
         method: ``"tree"`` (kinematic-tree Jacobian + articulated-body solve, fast) or ``"autograd"``
-            (autograd Jacobian + dense Cholesky, general). ``"tree"`` falls back to ``"autograd"`` for a
-            skeleton whose structure it cannot read.
+            (autograd Jacobian + dense Cholesky; a cross-check, ~100x slower).
         return_result: return an :class:`IKResult` (flags, residuals) instead of ``θ`` alone.
 
     Returns:
@@ -778,20 +746,19 @@ def project(
     free_d = _free_mask(skeleton, free, D, device)[:, None]
 
     tree = _tree(skeleton) if method == "tree" else None
-    if tree is not None and not tree.ok:
-        tree = None
 
     # batch-last copies for the solver
     g_bl, th0_bl, w_bl = g.permute(1, 2, 0), th0.t(), w.t()
     with torch.no_grad():
         prob = _Problem(skeleton, tree, g_bl.detach(), th0_bl.detach(), w_bl.detach(), lo, hi, free_d, reg)
         q = torch.maximum(torch.minimum(prob.th0, hi), lo)
-        R, x, r, cost = prob.evaluate(q)
+        ap, x, r, cost = prob.evaluate(q)
         lam = torch.full((B,), float(damping), dtype=dtype, device=device)
         active = torch.ones(B, dtype=torch.bool, device=device)
         converged = torch.zeros(B, dtype=torch.bool, device=device)
         n_iter = torch.full((B,), iters, dtype=torch.long, device=device)
         tiny_cost = J * 1e-12
+        eps_rel = torch.finfo(dtype).eps ** 0.5
         rows = None  # poses still iterating (None: all); converged poses drop out of the work
         for it in range(iters):
             P = prob if rows is None else prob.subset(rows)
@@ -799,19 +766,20 @@ def project(
             def pick(t, rows=rows):
                 return t if rows is None else t.index_select(-1, rows)
 
-            q_a, R_a, x_a, r_a, cost_a, lam_a = (pick(t) for t in (q, R, x, r, cost, lam))
-            delta = P.step(q_a, R_a, x_a, r_a, lam_a)
+            q_a, ap_a, x_a, r_a, cost_a, lam_a = (pick(t) for t in (q, ap, x, r, cost, lam))
+            delta, stationarity = P.step(q_a, ap_a, x_a, r_a, lam_a)
             # Full step first; then a line search on the projection arc clamp(q + α δ), α = 1/2, 1/4, for
             # the poses whose cost went up (each halving costs one FK of those poses only).
             q_t = torch.maximum(torch.minimum(q_a + delta, hi), lo)
-            R_t, x_t, r_t, c_t = P.evaluate(q_t)
+            ap_t, x_t, r_t, c_t = P.evaluate(q_t)
             full = c_t <= cost_a
             rel_dec = (cost_a - c_t) / cost_a.clamp_min(torch.finfo(dtype).tiny)
-            q_a = torch.where(full, q_t, q_a)
-            R_a = torch.where(full, R_t, R_a)
-            x_a = torch.where(full, x_t, x_a)
-            r_a = torch.where(full, r_t, r_a)
-            cost_a = torch.where(full, c_t, cost_a)
+            # the trial point becomes the state, the rejected poses keep theirs (usually few: copy those)
+            rej = (~full).nonzero().flatten()
+            if rej.numel():
+                for new, old in ((q_t, q_a), (ap_t, ap_a), (x_t, x_a), (r_t, r_a), (c_t, cost_a)):
+                    new.index_copy_(-1, rej, old.index_select(-1, rej))
+            q_a, ap_a, x_a, r_a, cost_a = q_t, ap_t, x_t, r_t, c_t
             accepted = full.clone()
             alpha = 0.5
             for _ in range(2):
@@ -819,29 +787,32 @@ def project(
                 if sub.numel() == 0:
                     break
                 q_t = torch.maximum(torch.minimum(q_a[:, sub] + alpha * delta[:, sub], hi), lo)
-                R_t, x_t, r_t, c_t = P.subset(sub).evaluate(q_t)
+                ap_t, x_t, r_t, c_t = P.subset(sub).evaluate(q_t)
                 ok = c_t <= cost_a[sub]
                 put, take = sub[ok], ok.nonzero().flatten()
                 q_a[:, put] = q_t[:, take]
-                R_a[..., put] = R_t[..., take]
+                ap_a[..., put] = ap_t[..., take]
                 x_a[..., put] = x_t[..., take]
                 r_a[..., put] = r_t[..., take]
                 cost_a[put] = c_t[take]
                 accepted[put] = True
                 alpha *= 0.5
             small = delta.abs().amax(0) < tol
-            stuck = ~accepted & (lam_a >= 1e6)  # no descent even with a gradient-descent-sized step
+            # No descent even with a gradient-descent-sized step: converged if that is rounding, i.e. the
+            # projected gradient (m² per rad) is nil next to sqrt(eps) x the residual norm x a 1 m lever.
+            stuck = ~accepted & (lam_a >= 1e6)
+            stationary = stationarity <= eps_rel * cost_a.clamp_min(tiny_cost).sqrt()
             exact = cost_a <= tiny_cost  # targets on the manifold, met to ~1 µm per joint
             done = (full & (small | (rel_dec < ftol))) | stuck | exact
             lam_a = torch.where(full, (lam_a * 0.3).clamp_min(1e-7), lam_a * torch.where(accepted, 3.0, 30.0))
             if rows is None:
-                q, R, x, r, cost, lam = q_a, R_a, x_a, r_a, cost_a, lam_a
+                q, ap, x, r, cost, lam = q_a, ap_a, x_a, r_a, cost_a, lam_a
                 idx = torch.arange(B, device=device)
             else:
                 idx = rows
-                q[:, idx], R[..., idx], x[..., idx], r[..., idx] = q_a, R_a, x_a, r_a
+                q[:, idx], ap[..., idx], x[..., idx], r[..., idx] = q_a, ap_a, x_a, r_a
                 cost[idx], lam[idx] = cost_a, lam_a
-            converged[idx[done & ~stuck]] = True
+            converged[idx[done & (~stuck | stationary)]] = True
             n_iter[idx[done]] = it + 1
             active[idx[done]] = False
             rows = active.nonzero().flatten()
@@ -855,9 +826,9 @@ def project(
         # derivative is that of the fixed point, (JᵀWJ + μI)⁻¹ JᵀW for the targets (implicit function).
         prob_g = _Problem(skeleton, tree, g_bl, th0_bl, w_bl, lo, hi, free_d, reg)
         q_fix = q.detach()
-        R_g, x_g = _frames(skeleton, q_fix.t())
+        ap_g, x_g = _frames(skeleton, q_fix.t())
         r_g = g_bl - x_g
-        delta = prob_g.step(q_fix, R_g, x_g, r_g, torch.zeros_like(lam), refine=0)
+        delta = prob_g.step(q_fix, ap_g, x_g, r_g, torch.zeros_like(lam), refine=0)[0]
         q = q_fix + delta - delta.detach()
 
     theta = q.t().reshape(*batch, D)

@@ -165,6 +165,35 @@ def _run_coefficients(static: torch.Tensor, motions: list) -> torch.Tensor:
     return acc[:, :3, :].reshape(-1, 12).t().contiguous()
 
 
+def _run_axes(static: torch.Tensor, motions: list, pivots: bool) -> torch.Tensor:
+    """(3m or 6m, P) matrix A with, for DOF i of the run, rows ``3i..3i+2`` its axis and (``pivots``) rows
+    ``3m + 3i..3m + 3i+2`` its pivot (a point on the axis), in the run's parent frame, as ``A @ monomials``
+    (the monomials of :func:`_run_coefficients`).
+
+    Both are those of the frame ``S @ M_1 @ ... @ M_{i-1}`` right above DOF ``i``, which does not depend on
+    ``q_i ... q_m``: for those DOFs only the constant feature (the last one) enters, with the identity.
+    """
+    axes, points = [], []
+    for i, (_, axis_i, _) in enumerate(motions):
+        acc = static[None]
+        for j, (kind, axis, _) in enumerate(motions):
+            G = _feature_basis(kind, axis)
+            if j >= i:
+                G = torch.zeros_like(G)
+                G[-1] = torch.eye(4, dtype=G.dtype)
+            acc = (acc[:, None] @ G[None]).reshape(-1, 4, 4)
+        axes.append((acc[:, :3, :3] @ axis_i).t())
+        points.append(acc[:, :3, 3].t())
+    return torch.cat(axes + (points if pivots else []), 0).contiguous()
+
+
+def _pivot_is_origin(motions: list) -> bool:
+    """Whether every revolute DOF of the run turns about the run's own origin: no prismatic DOF follows it
+    (rotations about axes through a point leave it in place; the origins inside a run are the identity)."""
+    kinds = [kind for kind, _, _ in motions]
+    return not any(k == _REVOLUTE and _PRISMATIC in kinds[i + 1 :] for i, k in enumerate(kinds))
+
+
 class Skeleton(nn.Module):
     """A kinematic tree of body joints with joint limits and capsule radii, batched FK on any device.
 
@@ -335,14 +364,50 @@ class Skeleton(nn.Module):
         for r, n in enumerate(order):
             groups.setdefault(tuple(t for t, _, _ in runs[n]), []).append(r)
         self._groups = []
+        self._axis_pivots: list[bool] = []
         concat = []
+        D = len(self.dof_names)
+        # Where each DOF's world axis and pivot are found (see :meth:`_world`): its row in the
+        # group-concatenated axes, and in the concatenation of the node origins and the computed pivots (a
+        # revolute DOF turns about its node's origin unless a prismatic DOF follows it in the run). A DOF in
+        # no run (below every body joint) points at an appended zero axis.
+        axis_rows, pivot_rows = [-1] * D, [0] * D
+        n_axis_rows, n_pivot_rows = 0, len(order)
         for g, (sig, members) in enumerate(groups.items()):
             W = torch.stack([_run_coefficients(statics[order[r]], runs[order[r]]) for r in members])
             dofs = torch.tensor([[dof for _, _, dof in runs[order[r]]] for r in members], dtype=torch.long)
             self._consts[f"W{g}"] = W  # (n, 12, P)
             self._consts[f"dofs{g}"] = dofs.reshape(len(members), len(sig))
+            if sig:
+                pivots = not all(_pivot_is_origin(runs[order[r]]) for r in members)
+                A = torch.stack([_run_axes(statics[order[r]], runs[order[r]], pivots) for r in members])
+                self._consts[f"WA{g}"] = torch.cat([W, A], 1)  # (n, 12 + 3m or 12 + 6m, P)
+                par = [rank[parent[order[r]]] if parent[order[r]] >= 0 else len(order) for r in members]
+                self._consts[f"par{g}"] = torch.tensor(par, dtype=torch.long)
+                self._axis_pivots.append(pivots)
+                for r, run_dofs in zip(members, dofs.tolist(), strict=True):
+                    for dof in run_dofs:
+                        axis_rows[dof] = n_axis_rows
+                        n_axis_rows += 1
+                        pivot_rows[dof] = n_pivot_rows if pivots else r
+                        n_pivot_rows += int(pivots)
+            else:
+                self._axis_pivots.append(False)
             self._groups.append(sig)
             concat.extend(members)
+        self._consts["axis_rows"] = torch.tensor(
+            [a if a >= 0 else n_axis_rows for a in axis_rows], dtype=torch.long
+        )
+        self._consts["pivot_rows"] = torch.tensor(pivot_rows, dtype=torch.long)
+        revolute = [False] * D
+        for f in frames:
+            if f.dof >= 0:
+                revolute[f.dof] = f.joint_type == _REVOLUTE
+        self._dof_revolute = torch.tensor(revolute)
+        # Node structure in level order (the articulated-body solve of torchpf.ik reads it): each internal
+        # node's parent row (-1 for a root) and the DOFs of its run, root first.
+        self._node_parent = [rank[parent[n]] if parent[n] >= 0 else -1 for n in order]
+        self._node_dofs = [[dof for _, _, dof in runs[n]] for n in order]
         kinds = {k for sig in self._groups for k in sig}
         self._has_revolute, self._has_prismatic = _REVOLUTE in kinds, _PRISMATIC in kinds
         # Rows of the group-concatenated tensor, in level order.
@@ -413,17 +478,21 @@ class Skeleton(nn.Module):
             consts["levels"] = [(s, e, _as_slice_or(p, device)) for s, e, p in self._levels]
             consts["reorder"] = None if self._reorder is None else self._reorder.to(device)
             consts["body_rows"] = self._body_rows.to(device)
+            consts["eye34"] = torch.eye(3, 4, dtype=dtype, device=device)[None, :, :, None]
             consts["col3"] = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=dtype, device=device).reshape(
                 1, 1, 4, 1
             )
             self._cache[key] = consts
         return consts
 
-    def _world(self, theta: torch.Tensor) -> torch.Tensor:
+    def _world(self, theta: torch.Tensor, axes: bool = False):
         """World 3x4 transforms (M, 3, 4, B) of every internal node, level order; ``theta`` is (B, D).
 
         Batch-last layout: every elementwise product below runs over contiguous B-long rows, which on a CPU
-        is several times faster than batched 3x3 ``bmm``.
+        is several times faster than batched 3x3 ``bmm``. With ``axes=True`` also returns every DOF's world
+        axis and pivot, each ``(D, 3, B)`` (see :meth:`dof_axes`): the same monomial products give the axes
+        (and the pivots that are not a node's origin) in the run's parent frame (rows ``WA``), one rotation
+        takes them to the world.
         """
         c = self._constants(theta.dtype, theta.device)
         q = theta.t().contiguous()  # (D, B): batch last, see above
@@ -435,6 +504,7 @@ class Skeleton(nn.Module):
             feats[_PRISMATIC] = torch.stack([q, one], 1)  # (D, 2, B)
         B = theta.shape[0]
         local = []
+        run_axes = []  # per group with DOFs: (n, 3m or 6m, B) axes (and pivots) in the parent frame
         for g, sig in enumerate(self._groups):
             W = c[f"W{g}"]
             if not sig:
@@ -445,7 +515,12 @@ class Skeleton(nn.Module):
             for k, kind in enumerate(sig):
                 f = feats[kind].index_select(0, dofs[:, k])  # (n, F, B)
                 mono = f if mono is None else (mono[:, :, None] * f[:, None]).flatten(1, 2)
-            local.append(torch.bmm(W, mono))  # (n, 12, B)
+            if axes:
+                out = torch.bmm(c[f"WA{g}"], mono)
+                local.append(out[:, :12])
+                run_axes.append((g, out[:, 12:]))
+            else:
+                local.append(torch.bmm(W, mono))  # (n, 12, B)
         loc = torch.cat(local, 0) if len(local) > 1 else local[0]
         if c["reorder"] is not None:
             loc = loc.index_select(0, c["reorder"])
@@ -462,7 +537,26 @@ class Skeleton(nn.Module):
                 T = torch.addcmul(T, P[:, :, 1:2], L[:, 1:2])
                 L = torch.addcmul(T, P[:, :, 2:3], L[:, 2:3])
             world.append(L)
-        return torch.cat(world, 0) if len(world) > 1 else world[0]
+        if not axes:
+            return torch.cat(world, 0) if len(world) > 1 else world[0]
+        # the parent frames of the runs, a root's being the identity (an appended row)
+        ext = torch.cat([*world, c["eye34"].expand(1, 3, 4, B)], 0)
+        world = ext[:-1]
+        axis_parts, pivot_parts = [], [world[:, :, 3]]
+        for g, v in run_axes:
+            P = ext.index_select(0, c[f"par{g}"])  # (n, 3, 4, B)
+            n, m = v.shape[0], len(self._groups[g])
+            v = v.view(n, -1, 3, B)  # (n, m or 2m, 3, B)
+            w = P[:, None, :, 0] * v[:, :, 0:1]
+            w = torch.addcmul(w, P[:, None, :, 1], v[:, :, 1:2])
+            w = torch.addcmul(w, P[:, None, :, 2], v[:, :, 2:3])
+            axis_parts.append(w[:, :m].reshape(n * m, 3, B))
+            if self._axis_pivots[g]:
+                pivot_parts.append((w[:, m:] + P[:, None, :, 3]).reshape(n * m, 3, B))  # points: translate
+        axis_parts.append(world.new_zeros(1, 3, B))
+        dof_axes = torch.cat(axis_parts, 0).index_select(0, c["axis_rows"])
+        pivots = pivot_parts[0] if len(pivot_parts) == 1 else torch.cat(pivot_parts, 0)
+        return world, dof_axes, pivots.index_select(0, c["pivot_rows"])
 
     def _flat(self, theta: torch.Tensor) -> tuple[torch.Tensor, torch.Size]:
         if not isinstance(theta, torch.Tensor):
@@ -506,6 +600,24 @@ class Skeleton(nn.Module):
         T = self._body(self._world(flat), flat).permute(3, 0, 1, 2)  # (B, J, 3, 4)
         bottom = flat.new_tensor([0.0, 0.0, 0.0, 1.0]).expand(*T.shape[:2], 1, 4)
         return torch.cat([T, bottom], -2).reshape(*batch, len(self.joint_names), 4, 4)
+
+    def dof_axes(self, theta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """World axis and pivot of every DOF: the columns of the kinematic Jacobian.
+
+        Args:
+            theta: (..., D) pose.
+
+        Returns:
+            ``axes`` (..., D, 3) world direction of each DOF's axis (as long as the URDF axis is), and
+            ``pivots`` (..., D, 3) a point on it (m): the origin of the frame right above the DOF. A
+            revolute DOF moves a point ``y`` below it with velocity ``axis x (y - pivot)`` per rad, a
+            prismatic one with ``axis`` per metre (its pivot is then only some point of its run); a DOF
+            below every body joint gets a zero axis.
+        """
+        flat, batch = self._flat(theta)
+        _, axes, pivots = self._world(flat, axes=True)
+        D = len(self.dof_names)
+        return axes.permute(2, 0, 1).reshape(*batch, D, 3), pivots.permute(2, 0, 1).reshape(*batch, D, 3)
 
     def clamp(self, theta: torch.Tensor) -> torch.Tensor:
         """``theta`` (..., D) clamped into ``[lower, upper]`` per DOF (differentiable inside the limits)."""
