@@ -26,17 +26,70 @@ def _interior_poses(skel, n, seed, dtype=torch.float64, spread=0.8):
     return (mid + spread * half * u).to(dtype)
 
 
-@pytest.mark.parametrize("name", ["human", "f22"])
+# A run mixing revolute and prismatic DOFs (shoulder, telescoping extension, wrist between two links), so that
+# a revolute DOF's pivot is not its run's origin; a rotated root slider; a fixed end site.
+TELESCOPE_URDF = """<?xml version="1.0"?>
+<robot name="telescope">
+  <link name="base"/><link name="slide"/><link name="torso"/><link name="s1"/><link name="s2"/>
+  <link name="hand"/><link name="tip"/>
+  <joint name="px" type="prismatic"><parent link="base"/><child link="slide"/>
+    <origin xyz="0.1 0.2 0.3" rpy="0.3 -0.2 0.5"/><axis xyz="1 0 0"/>
+    <limit lower="-5" upper="5" effort="1" velocity="1"/></joint>
+  <joint name="yaw" type="revolute"><parent link="slide"/><child link="torso"/>
+    <origin xyz="0 0 0" rpy="0 0 0"/><axis xyz="0 0 1"/><limit lower="-3" upper="3" effort="1" velocity="1"/>
+  </joint>
+  <joint name="shoulder" type="revolute"><parent link="torso"/><child link="s1"/>
+    <origin xyz="0.2 0 0.4" rpy="0 0.4 0"/><axis xyz="1 1 0"/>
+    <limit lower="-2" upper="2" effort="1" velocity="1"/></joint>
+  <joint name="extend" type="prismatic"><parent link="s1"/><child link="s2"/>
+    <origin xyz="0 0 0" rpy="0 0 0"/><axis xyz="0.2 -0.5 0.8"/>
+    <limit lower="0" upper="0.5" effort="1" velocity="1"/></joint>
+  <joint name="wrist" type="revolute"><parent link="s2"/><child link="hand"/>
+    <origin xyz="0 0 0" rpy="0 0 0"/><axis xyz="0 0 1"/><limit lower="-1" upper="1" effort="1" velocity="1"/>
+  </joint>
+  <joint name="tip_fixed" type="fixed"><parent link="hand"/><child link="tip"/>
+    <origin xyz="0.15 0 0" rpy="0 0 0"/></joint>
+</robot>
+"""
+
+
+@pytest.fixture(scope="module")
+def telescope():
+    return Skeleton.from_urdf(TELESCOPE_URDF, joint_names=["slide", "torso", "hand", "tip"])
+
+
+def test_dof_axes_are_the_motion_of_each_dof(telescope):
+    # Closed form: moving one DOF by h moves a point below it by h (axis x (y - pivot)) (revolute) or
+    # h axis (prismatic), to first order; checked by central differences of FK.
+    theta = torch.tensor([[0.3, 0.4, -0.7, 0.25, 0.6]], dtype=torch.float64)
+    axes, pivots = telescope.dof_axes(theta)
+    x = telescope.fk(theta)[0]
+    revolute = [False, True, True, False, True]
+    h = 1e-6
+    for d in range(5):
+        step = torch.zeros_like(theta)
+        step[0, d] = h
+        fd = (telescope.fk(theta + step) - telescope.fk(theta - step))[0] / (2 * h)
+        a, p = axes[0, d], pivots[0, d]
+        pred = torch.linalg.cross(a.expand_as(x), x - p, dim=-1) if revolute[d] else a.expand_as(x)
+        moved = fd.norm(dim=-1) > 0
+        # 1e-7: pytorch-kinematics keeps the normalised URDF axes in float32 (|a|² = 1 +- 1e-8)
+        torch.testing.assert_close(fd[moved], pred[moved], atol=1e-7, rtol=0)
+
+
+@pytest.mark.parametrize("name", ["human", "f22", "telescope"])
 def test_tree_jacobian_matches_autograd(name, request):
     skel = request.getfixturevalue(name)
     theta = _interior_poses(skel, 3, seed=1)
+    # the telescope's non-unit axes are normalised in float32 by pytorch-kinematics: 1e-8 relative
+    atol = 1e-7 if name == "telescope" else 1e-12
     torch.testing.assert_close(
-        ik.tree_jacobian(skel, theta), ik.autograd_jacobian(skel, theta), atol=1e-12, rtol=0
+        ik.tree_jacobian(skel, theta), ik.autograd_jacobian(skel, theta), atol=atol, rtol=0
     )
 
 
 @pytest.mark.parametrize("fused", [True, False], ids=["fused-kernel", "eager"])
-@pytest.mark.parametrize("name", ["human", "f22"])
+@pytest.mark.parametrize("name", ["human", "f22", "telescope"])
 def test_articulated_body_solve_matches_dense_cholesky(name, fused, request, monkeypatch):
     # (JᵀWJ + diag(arm)) δ = JᵀW r + tau with random weights, frozen DOFs and right-hand side, by the fused
     # CPU kernel and by the eager tensor code
