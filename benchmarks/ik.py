@@ -9,9 +9,12 @@ isotropic Gaussian noise of ``--noise`` metres per coordinate. Reported per meth
 wall time of ``--repeats`` runs, mean/max iterations, fraction converged, and the median RMS joint residual
 next to two references: the residual of the true pose (``≈ noise·√3``) and the least-squares noise floor
 ``noise·√(3 - p/J)``, ``p`` the rank of the Jacobian (the DOFs that joint positions determine), which a
-least-squares fit attains on average. The ``autograd`` method (dense autograd Jacobian) runs on 200 poses of
-the smallest size only. Single-threaded by default (``--threads``): on a small shared CPU a second intra-op
-thread makes the solver's many small tensor operations slower, not faster.
+least-squares fit attains on average. Three solvers, timed in the same run: ``tree`` (the default: tree
+Jacobian, articulated-body solve in the fused CPU kernel), ``tree-eager`` (the same with the solve as tensor
+operations, ``TORCHPF_FUSED=0``, what CUDA runs) and ``autograd`` (dense autograd Jacobian + Cholesky, on 200
+poses of the smallest size only); ``speed-up`` is each one's time per pose against ``tree-eager``. Times are
+wall clock, the minimum and the median of ``--repeats`` runs (a shared VM: the minimum is the machine's
+speed, the median what a busy neighbour leaves). Single-threaded by default (``--threads``).
 """
 
 from __future__ import annotations
@@ -71,10 +74,16 @@ def main(argv=None) -> None:
         prev, truth = prev.to(dtype), truth.to(dtype)
         targets = skel.fk(truth) + args.noise * torch.randn(size, J, 3, generator=g, dtype=dtype)
         truth_res = (skel.fk(truth) - targets).norm(dim=-1).square().mean(-1).sqrt().median().item()
-        for method in ("tree", "autograd"):
+        for label, method, fused in (
+            ("tree", "tree", "1"),
+            ("tree-eager", "tree", "0"),
+            ("autograd", "autograd", "1"),
+        ):
             if method == "autograd" and size != min(args.sizes):
                 continue
             n = size if method == "tree" else min(size, 200)
+            os.environ["TORCHPF_FUSED"] = fused
+            ik.project(skel, targets[: min(n, 8)], prev[: min(n, 8)], method=method)  # compile / warm up
             times = []
             for _ in range(args.repeats if method == "tree" else 1):
                 t0 = time.perf_counter()
@@ -82,8 +91,9 @@ def main(argv=None) -> None:
                 times.append(time.perf_counter() - t0)
             rows.append(
                 (
-                    method,
+                    label,
                     n,
+                    min(times),
                     statistics.median(times),
                     res.iterations.float().mean().item(),
                     int(res.iterations.max()),
@@ -92,17 +102,22 @@ def main(argv=None) -> None:
                     truth_res,
                 )
             )
+        os.environ.pop("TORCHPF_FUSED")
     print(f"poses: {source}; start = previous frame, targets = FK(next frame) + noise")
     # DOFs that joint positions determine: the rank of the Jacobian at a typical pose
     rank = int(torch.linalg.matrix_rank(ik.tree_jacobian(skel, prev[0].double()).reshape(3 * J, D)))
     floor = args.noise * (3 - rank / J) ** 0.5
     print(f"least-squares noise floor: noise * sqrt(3 - rank/J) = {floor * 1000:.2f} mm (rank {rank})")
-    head = f"{'method':>9} {'poses':>6} {'time s':>8} {'ms/1k':>7} {'iters':>6} {'max':>4} {'conv':>6}"
-    print(head + f" {'median res mm':>14} {'truth res mm':>13}")
-    for method, n, t, it, itmax, conv, res, tres in rows:
+    eager = {n: t / n for label, n, t, *_ in rows if label == "tree-eager"}
+    head = (
+        f"{'method':>10} {'poses':>6} {'min s':>7} {'median s':>8} {'ms/1k':>7} {'speed-up':>8} {'iters':>6}"
+    )
+    print(head + f" {'max':>4} {'conv':>6} {'median res mm':>14} {'truth res mm':>13}")
+    for label, n, t, tmed, it, itmax, conv, res, tres in rows:
+        base = eager.get(n, eager[min(eager)])
         print(
-            f"{method:>9} {n:>6} {t:>8.3f} {1000 * t / n * 1000:>7.1f} {it:>6.2f} {itmax:>4} {conv:>6.3f}"
-            f" {res * 1000:>14.2f} {tres * 1000:>13.2f}"
+            f"{label:>10} {n:>6} {t:>7.3f} {tmed:>8.3f} {1000 * t / n * 1000:>7.1f} {base / (t / n):>7.2f}x"
+            f" {it:>6.2f} {itmax:>4} {conv:>6.3f} {res * 1000:>14.2f} {tres * 1000:>13.2f}"
         )
 
 

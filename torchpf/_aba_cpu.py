@@ -23,19 +23,60 @@ except ImportError:  # pragma: no cover - numba is a dependency; a platform with
 AVAILABLE = numba is not None
 
 
-def _kernel(tw, inertia, force, tau, arm, on, bdofs, bk, bparent, out):
+def _kernel(tw, rel, w, r, tau, arm, on, point_body, bdofs, bk, bparent, out):
     """ABA over bodies ``0..nb-1`` (parents before children), batch last.
 
-    tw (D, 6, B), inertia (nb+1, 6, 6, B), force (nb+1, 6, B) (the point forces summed per body), tau, arm,
-    on (D, B) (``on``: 1 for a free DOF, 0 for a held one), bdofs (nb, kmax) DOFs of each body's run (-1
+    tw (D, 6, B) twists; rel (J, 3, B) joint positions about the twists' centre, w (J, B) weights, r (J, 3, B)
+    residuals, point_body (J,) the body that carries each joint's point mass (-1: none); tau, arm, on
+    (D, B) (``on``: 1 for a free DOF, 0 for a held one); bdofs (nb, kmax) DOFs of each body's run (-1
     padding), bk (nb,) run lengths, bparent (nb,) parent body (-1 for a root). Writes ``out (D, B)``.
     Every loop nest has the batch innermost, so that it vectorises over poses.
     """
     nb, kmax = bdofs.shape
     B = tw.shape[2]
     dt = tw.dtype
-    IA = inertia[:nb].copy()  # articulated inertias, children's added as they are eliminated
-    PA = -force[:nb]  # articulated bias forces
+    # Body inertias and bias forces of the point masses: w [[|y|² I - y yᵀ, [y]x], [-[y]x, I]] and
+    # -(y x w r, w r); the articulated ones accumulate their children's as those are eliminated.
+    IA = np.zeros((nb, 6, 6, B), dt)
+    PA = np.zeros((nb, 6, B), dt)
+    for pt in range(rel.shape[0]):
+        i = point_body[pt]
+        if i < 0:
+            continue
+        for b in range(B):
+            m = w[pt, b]
+            x, y, z = rel[pt, 0, b], rel[pt, 1, b], rel[pt, 2, b]
+            mx, my, mz = m * x, m * y, m * z
+            IA[i, 0, 0, b] += my * y + mz * z
+            IA[i, 1, 1, b] += mx * x + mz * z
+            IA[i, 2, 2, b] += mx * x + my * y
+            IA[i, 0, 1, b] -= mx * y
+            IA[i, 0, 2, b] -= mx * z
+            IA[i, 1, 2, b] -= my * z
+            IA[i, 0, 4, b] -= mz
+            IA[i, 0, 5, b] += my
+            IA[i, 1, 3, b] += mz
+            IA[i, 1, 5, b] -= mx
+            IA[i, 2, 3, b] -= my
+            IA[i, 2, 4, b] += mx
+            IA[i, 3, 3, b] += m
+            fx, fy, fz = m * r[pt, 0, b], m * r[pt, 1, b], m * r[pt, 2, b]
+            PA[i, 0, b] -= y * fz - z * fy
+            PA[i, 1, b] -= z * fx - x * fz
+            PA[i, 2, b] -= x * fy - y * fx
+            PA[i, 3, b] -= fx
+            PA[i, 4, b] -= fy
+            PA[i, 5, b] -= fz
+    for i in range(nb):  # the symmetric entries, the translational mass m I
+        for b in range(B):
+            IA[i, 1, 0, b] = IA[i, 0, 1, b]
+            IA[i, 2, 0, b] = IA[i, 0, 2, b]
+            IA[i, 2, 1, b] = IA[i, 1, 2, b]
+            IA[i, 4, 4, b] = IA[i, 3, 3, b]
+            IA[i, 5, 5, b] = IA[i, 3, 3, b]
+            for a in range(3):
+                for c in range(3):
+                    IA[i, 3 + c, a, b] = IA[i, a, 3 + c, b]
     D = tw.shape[0]
     S = np.empty((D, 6, B), dt)  # per DOF: motion subspace row (zero for a held DOF)
     R = np.empty((D, 7, B), dt)  # per DOF: [D⁻¹ u | D⁻¹ Uᵀ]
@@ -165,7 +206,15 @@ class Structure:
 
 
 def aba_solve(
-    structure: Structure, tw: Tensor, inertia: Tensor, force: Tensor, tau: Tensor, arm: Tensor, on: Tensor
+    structure: Structure,
+    tw: Tensor,
+    rel: Tensor,
+    w: Tensor,
+    r: Tensor,
+    tau: Tensor,
+    arm: Tensor,
+    on: Tensor,
+    point_body: np.ndarray,
 ) -> Tensor:
     """``δ (D, B)``: see :func:`torchpf.ik._aba_solve` (same system, CPU tensors, no autograd)."""
     D, _, B = tw.shape
@@ -176,11 +225,13 @@ def aba_solve(
 
     _compiled(
         arr(tw),
-        arr(inertia),
-        arr(force),
+        arr(rel),
+        arr(w),
+        arr(r),
         arr(tau),
         arr(arm),
         arr(on),
+        point_body,
         structure.bdofs,
         structure.bk,
         structure.bparent,

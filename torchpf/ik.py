@@ -141,6 +141,7 @@ class _Tree:
             return body_pos.get(n, -1)
 
         self.point_body = torch.tensor([body_above(n) for n in node_of_joint], dtype=torch.long)
+        self.point_body_np = self.point_body.numpy().astype("int64")
         body_parent = [body_above(parent[n]) for n in bodies]
         depth: list[int] = []
         for i in range(len(bodies)):  # parents come first (level order)
@@ -410,16 +411,16 @@ def _aba_solve(
     """
     c = tree.on(tw.device, tw.dtype)
     D, _, B = tw.shape
+    freef = free.to(tw.dtype)
+    if _fused_kernel_applies(tw, rel, w, r, tau, arm):
+        from torchpf import _aba_cpu
+
+        return _aba_cpu.aba_solve(tree.kernel_structure(), tw, rel, w, r, tau, arm, freef, tree.point_body_np)
     if inertia is None:
         inertia = _body_inertia(tree, rel, w)
     if wrench is None:
         wrench = _wrenches(rel, w, r)
-    freef = free.to(tw.dtype)
     force = (c["point_body"] @ wrench.reshape(-1, 6 * B)).view(-1, 6, B)
-    if _fused_kernel_applies(tw, inertia, force, tau, arm):
-        from torchpf import _aba_cpu
-
-        return _aba_cpu.aba_solve(tree.kernel_structure(), tw, inertia, force, tau, arm, freef)
 
     levels = c["levels"]
     saved = [None] * len(levels)
@@ -598,14 +599,16 @@ class _Problem:
             centre = x[0].detach()
             rel = x - centre
             tw = _twists(self.tree, ap, centre)
-            return ("tree", tw, rel, _body_inertia(self.tree, rel, self.w))
+            # the fused CPU kernel sums the body inertias itself
+            inertia = None if _fused_kernel_applies(tw, rel) else _body_inertia(self.tree, rel, self.w)
+            return ("tree", tw, rel, inertia)
         return ("dense", autograd_jacobian(self.skeleton, q.t()))
 
     @staticmethod
     def subset_lin(lin, rows):
         """The linearisation of the poses ``rows`` only."""
         if lin[0] == "tree":
-            return ("tree", *(t.index_select(-1, rows) for t in lin[1:]))
+            return ("tree", *(None if t is None else t.index_select(-1, rows) for t in lin[1:]))
         return ("dense", lin[1].index_select(0, rows))
 
     def gradient(self, lin, r, q, wrench=None) -> Tensor:
