@@ -101,12 +101,13 @@ def _sequence(skel: Skeleton, frames: int, step: int, start: int, n_points: int)
     return truth.float(), cams, obs
 
 
-def _run(skel, method, n, truth, cams, obs, fps, joint_sigma, lik_sigma, seed):
+def _run(skel, method, n, truth, cams, obs, fps, joint_sigma, lik_sigma, seed, ik_iters=None):
     D = len(skel.dof_names)
     free = ik.frozen_mask(skel, FROZEN)
     sig = table5_sigma(skel, fps=fps) * free
     lik = PointCloudLikelihood(skel, sigma=lik_sigma, view_point=cams[0])
-    projected = ProjectedGaussian(skel, joint_sigma, ik_options={"free": free})
+    ik_options = {"free": free} if ik_iters is None else {"free": free, "iters": ik_iters}
+    projected = ProjectedGaussian(skel, joint_sigma, ik_options=ik_options)
     proposal = None
     if method == "angular":
         dynamics = AngularRandomWalk(sig, skel.lower, skel.upper)
@@ -145,6 +146,12 @@ def main(argv=None) -> None:
     ap.add_argument("--joint-sigma", type=float, default=0.03, help="Σ_l = joint_sigma² I (m)")
     ap.add_argument("--lik-sigma", type=float, default=0.1, help="σ of the point-cloud likelihood (m)")
     ap.add_argument("--threads", type=int, default=1, help="torch threads (0: torch's default)")
+    ap.add_argument(
+        "--ik-iters",
+        type=int,
+        default=None,
+        help="IK iterations of the projection (default: the prior's, 10)",
+    )
     args = ap.parse_args(argv)
     if args.threads > 0:
         torch.set_num_threads(args.threads)
@@ -166,7 +173,19 @@ def main(argv=None) -> None:
     for n in args.particles:
         for method in args.methods:
             runs = [
-                _run(skel, method, n, truth, cams, obs, fps, args.joint_sigma, args.lik_sigma, 1000 * r + n)
+                _run(
+                    skel,
+                    method,
+                    n,
+                    truth,
+                    cams,
+                    obs,
+                    fps,
+                    args.joint_sigma,
+                    args.lik_sigma,
+                    1000 * r + n,
+                    args.ik_iters,
+                )
                 for r in range(args.runs)
             ]
             results[method, n] = runs

@@ -187,7 +187,9 @@ class SilhouetteGuided(nn.Module):
         dilate_px: grow the masks by this many pixels first (tolerance to segmentation noise).
         prior: the dynamics whose ``log_prob`` is reported as ``log_q`` (paper's weighting); default a
             :class:`~priors.motion.ProjectedGaussian` with the same ``Σ_l`` and IK options.
-        ik_options: keyword arguments for :func:`torchpf.ik.project`.
+        ik_options: keyword arguments for :func:`torchpf.ik.project`; default those of ``prior`` when it
+            is a :class:`~priors.motion.ProjectedGaussian` (same frozen DOFs and iterations as the filter's
+            dynamics), else the projection's defaults.
 
     obs: a :class:`~torchpf.observations.Frame` with ``silhouettes`` (or a ``Silhouettes``). Without
     silhouettes the proposal is the projected prior.
@@ -209,6 +211,8 @@ class SilhouetteGuided(nn.Module):
             raise ValueError("max_tries must be >= 0")
         self.skeleton = skeleton
         self.cams = _CameraSet(cameras)
+        if ik_options is None and isinstance(prior, ProjectedGaussian):
+            ik_options = prior.ik_options
         self.spatial = ProjectedGaussian(skeleton, joint_sigma, ik_options=ik_options)
         self.prior = prior if prior is not None else self.spatial
         self.max_tries = int(max_tries)

@@ -659,9 +659,16 @@ class _Problem:
             rows = out.any(0).nonzero().flatten()
             if rows.numel() == 0:
                 break
+            if 2 * rows.numel() > q.shape[-1]:
+                # most poses concerned: re-solving all is cheaper than gathering them (the others solve
+                # to the same step again: same free set, same right-hand side)
+                rows = None
 
             def sub(t, rows=rows):
-                return t.index_select(-1, rows)
+                return t if rows is None else t.index_select(-1, rows)
+
+            def put(t, t_s, rows=rows):
+                return t_s if rows is None else t.index_copy(-1, rows, t_s)
 
             q_s, out_s, target_s = sub(q), sub(out), sub(target)
             fixed_s = sub(fixed) + torch.where(
@@ -670,13 +677,11 @@ class _Problem:
                 torch.zeros_like(q_s),
             )
             free_s = sub(free) & ~out_s
-            lin_s = self.subset_lin(lin, rows)
+            lin_s = lin if rows is None else self.subset_lin(lin, rows)
             r_lin = sub(r) - self.displacement(lin_s, fixed_s)
             tau_s = -self.reg * (q_s + fixed_s - sub(self.th0))
             delta_s = self.solve(lin_s, sub(self.w), r_lin, tau_s, sub(arm), free_s)
-            delta = delta.index_copy(-1, rows, delta_s)
-            fixed = fixed.index_copy(-1, rows, fixed_s)
-            free = free.index_copy(-1, rows, free_s)
+            delta, fixed, free = put(delta, delta_s), put(fixed, fixed_s), put(free, free_s)
         # first-order optimality of the current point: the descent direction over the DOFs not held
         stationarity = torch.where(free0, grad, torch.zeros_like(grad)).abs().amax(0)
         return fixed + delta, stationarity

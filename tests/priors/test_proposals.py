@@ -96,6 +96,21 @@ def test_full_masks_reduce_to_the_projected_prior_and_empty_masks_exhaust(scene)
     assert q.draw(parents, half, torch.Generator().manual_seed(4)).accepted.all()
 
 
+def test_guided_proposals_project_with_the_priors_ik_options(scene):
+    # a prior that freezes the arms: the proposals inherit its IK options unless given their own, so their
+    # samples keep the frozen DOFs at the parents' values, as the filter's dynamics does
+    skel, cams, _, frame, parents = scene
+    frozen = torch.tensor(["shoulder" in n or "elbow" in n for n in skel.dof_names])
+    prior = ProjectedGaussian(skel, 0.03, ik_options={"free": ~frozen, "iters": 4})
+    for q in (SilhouetteGuided(skel, cams, prior=prior), DepthGuided(skel, cams, prior=prior)):
+        assert q.spatial.ik_options == prior.ik_options
+        d = q.draw(parents, frame, torch.Generator().manual_seed(6))
+        torch.testing.assert_close(d.x[:, frozen], skel.clamp(parents)[:, frozen])
+        assert (d.x[:, ~frozen] != parents[:, ~frozen]).any()
+    own = SilhouetteGuided(skel, cams, prior=prior, ik_options={"iters": 2})
+    assert own.spatial.ik_options["iters"] == 2 and "free" not in own.spatial.ik_options
+
+
 def test_nearest_distance_matches_brute_force():
     g = torch.Generator().manual_seed(5)
     pts, qs = torch.rand(500, 3, generator=g), torch.rand(7, 11, 3, generator=g)
