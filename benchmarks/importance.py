@@ -150,7 +150,7 @@ def main(argv=None) -> None:
         "--ik-iters",
         type=int,
         default=None,
-        help="IK iterations of the projection (default: the prior's, 10)",
+        help="IK iterations of the projection (default: the prior's, 3)",
     )
     args = ap.parse_args(argv)
     if args.threads > 0:

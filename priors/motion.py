@@ -504,8 +504,11 @@ class ProjectedGaussian(nn.Module):
         skeleton: the :class:`torchpf.Skeleton`.
         joint_sigma: isotropic std per joint (scalar or ``(J,)``, m) or blocks ``Σ_l`` ``(J, 3, 3)`` (m²).
         ik_options: keyword arguments for :func:`torchpf.ik.project` (``iters``, ``reg``, ``free`` ...).
-            Default ``{"iters": 10, "ftol": 1e-3}``: a sample needs the projection to a small fraction of
-            Σ, not to full convergence (override for a tighter solve).
+            Default ``{"iters": 3}``: a sample needs the projection to a small fraction of Σ, not to full
+            convergence. Measured on CMU walk poses with 3 cm per joint: 3 iterations leave the joints a
+            median 2.9 mm (90 %: 6 mm) from the converged projection, 10 iterations 0.3 mm, at 2.3x the
+            time; tracking error and effective sample size do not change (``benchmarks/importance.py
+            --ik-iters``). Override for a tighter solve.
 
     Example::
 
@@ -518,7 +521,7 @@ class ProjectedGaussian(nn.Module):
         self.skeleton = skeleton
         J = len(skeleton.joint_names)
         self.register_buffer("scale_tril", _joint_scale(joint_sigma, J))
-        self.ik_options = {"iters": 10, "ftol": 1e-3, **dict(ik_options or {})}
+        self.ik_options = {"iters": 3, **dict(ik_options or {})}
         self.noise_dim = 3 * J
 
     def mean_joints(self, x: Tensor) -> Tensor:

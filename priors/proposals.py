@@ -183,7 +183,9 @@ class SilhouetteGuided(nn.Module):
         skeleton: the :class:`torchpf.Skeleton`.
         cameras: the silhouette cameras (``Camera`` list or ``CameraRig``), in the masks' order.
         joint_sigma: ``Σ_l``: isotropic std per joint (scalar or ``(J,)``, m) or ``(J, 3, 3)`` covariances.
-        max_tries: rejection rounds (each redraws only the joints still outside).
+        max_tries: most redraws per joint (only the joints still outside are redrawn).
+        batch_tries: candidates drawn at once per joint still outside (the first acceptable one is kept: the
+            same law as one at a time, fewer rounds of the constraint test).
         dilate_px: grow the masks by this many pixels first (tolerance to segmentation noise).
         prior: the dynamics whose ``log_prob`` is reported as ``log_q`` (paper's weighting); default a
             :class:`~priors.motion.ProjectedGaussian` with the same ``Σ_l`` and IK options.
@@ -202,6 +204,7 @@ class SilhouetteGuided(nn.Module):
         joint_sigma=0.03,
         *,
         max_tries: int = 30,
+        batch_tries: int = 8,
         dilate_px: int = 0,
         prior: Any = None,
         ik_options: Mapping | None = None,
@@ -209,6 +212,9 @@ class SilhouetteGuided(nn.Module):
         super().__init__()
         if max_tries < 0:
             raise ValueError("max_tries must be >= 0")
+        if batch_tries < 1:
+            raise ValueError("batch_tries must be >= 1")
+        self.batch_tries = int(batch_tries)
         self.skeleton = skeleton
         self.cams = _CameraSet(cameras)
         if ik_options is None and isinstance(prior, ProjectedGaussian):
@@ -242,18 +248,28 @@ class SilhouetteGuided(nn.Module):
         X = self.spatial.joints_from_noise(mu, eps)
         ok = self._ok(X.reshape(-1, 3), joint_of.reshape(-1), ctx).reshape(mu.shape[:-1])
         rejections = torch.zeros(mu.shape[:-1], dtype=torch.long, device=mu.device)
-        for _ in range(self.max_tries):
+        tries = 0
+        while tries < self.max_tries:
             bad = ~ok
             n_bad = int(bad.sum())
             if n_bad == 0:
                 break
-            rejections = rejections + bad.long()
-            # redraw only the joints still outside, all particles and joints in one batch
-            e = torch.randn(n_bad, 3, generator=generator, dtype=mu.dtype, device=mu.device)
-            L = self.spatial.scale_tril.to(mu)[joint_of[bad]]  # (n_bad, 3, 3)
-            cand = mu[bad] + (L @ e[..., None])[..., 0]
-            X = X.index_put((bad,), cand)
-            ok = ok.index_put((bad,), self._ok(cand, joint_of[bad], ctx))
+            # Redraw only the joints still outside, all particles and joints in one batch, ``k`` i.i.d.
+            # candidates each: the first acceptable one is exactly what ``k`` sequential rejection rounds
+            # would keep (and the rejections before it are counted), in one constraint test instead of k.
+            k = min(self.batch_tries, self.max_tries - tries)
+            tries += k
+            e = torch.randn(n_bad, k, 3, generator=generator, dtype=mu.dtype, device=mu.device)
+            idx = joint_of[bad]
+            L = self.spatial.scale_tril.to(mu)[idx][:, None]  # (n_bad, 1, 3, 3)
+            cand = mu[bad][:, None] + (L @ e[..., None])[..., 0]  # (n_bad, k, 3)
+            good = self._ok(cand.reshape(-1, 3), idx.repeat_interleave(k), ctx).reshape(n_bad, k)
+            hit = good.any(1)
+            # index of the first acceptable candidate; the last one when none is (it is kept, flagged)
+            first = torch.where(hit, good.long().argmax(1), torch.full_like(idx, k - 1))
+            rejections = rejections.index_put((bad,), rejections[bad] + torch.where(hit, first, k))
+            X = X.index_put((bad,), cand[torch.arange(n_bad, device=mu.device), first])
+            ok = ok.index_put((bad,), hit)
         theta = self.spatial.project(X, x_old)
         log_q = self.prior.log_prob(theta, x_old)
         return GuidedDraw(
