@@ -762,70 +762,72 @@ def project(
         q = torch.maximum(torch.minimum(prob.th0, hi), lo)
         ap, x, r, cost = prob.evaluate(q)
         lam = torch.full((B,), float(damping), dtype=dtype, device=device)
-        active = torch.ones(B, dtype=torch.bool, device=device)
         converged = torch.zeros(B, dtype=torch.bool, device=device)
         n_iter = torch.full((B,), iters, dtype=torch.long, device=device)
         tiny_cost = J * 1e-12
         eps_rel = torch.finfo(dtype).eps ** 0.5
-        rows = None  # poses still iterating (None: all); converged poses drop out of the work
+        # Results for all poses, written as poses finish; the loop works on a compact working set (the
+        # columns ``rows`` of the batch) that shrinks as poses converge.
+        q_out, x_out, cost_out = q.clone(), x.clone(), cost.clone()
+        rows = torch.arange(B, device=device)
+        P = prob
         for it in range(iters):
-            P = prob if rows is None else prob.subset(rows)
-
-            def pick(t, rows=rows):
-                return t if rows is None else t.index_select(-1, rows)
-
-            q_a, ap_a, x_a, r_a, cost_a, lam_a = (pick(t) for t in (q, ap, x, r, cost, lam))
-            delta, stationarity = P.step(q_a, ap_a, x_a, r_a, lam_a)
+            delta, stationarity = P.step(q, ap, x, r, lam)
             # Full step first; then a line search on the projection arc clamp(q + α δ), α = 1/2, 1/4, for
             # the poses whose cost went up (each halving costs one FK of those poses only).
-            q_t = torch.maximum(torch.minimum(q_a + delta, hi), lo)
+            q_t = torch.maximum(torch.minimum(q + delta, hi), lo)
             ap_t, x_t, r_t, c_t = P.evaluate(q_t)
-            full = c_t <= cost_a
-            rel_dec = (cost_a - c_t) / cost_a.clamp_min(torch.finfo(dtype).tiny)
+            full = c_t <= cost
+            rel_dec = (cost - c_t) / cost.clamp_min(torch.finfo(dtype).tiny)
             # the trial point becomes the state, the rejected poses keep theirs (usually few: copy those)
             rej = (~full).nonzero().flatten()
             if rej.numel():
-                for new, old in ((q_t, q_a), (ap_t, ap_a), (x_t, x_a), (r_t, r_a), (c_t, cost_a)):
+                for new, old in ((q_t, q), (ap_t, ap), (x_t, x), (r_t, r), (c_t, cost)):
                     new.index_copy_(-1, rej, old.index_select(-1, rej))
-            q_a, ap_a, x_a, r_a, cost_a = q_t, ap_t, x_t, r_t, c_t
+            q, ap, x, r, cost = q_t, ap_t, x_t, r_t, c_t
             accepted = full.clone()
             alpha = 0.5
             for _ in range(2):
                 sub = (~accepted).nonzero().flatten()
                 if sub.numel() == 0:
                     break
-                q_t = torch.maximum(torch.minimum(q_a[:, sub] + alpha * delta[:, sub], hi), lo)
+                q_t = torch.maximum(torch.minimum(q[:, sub] + alpha * delta[:, sub], hi), lo)
                 ap_t, x_t, r_t, c_t = P.subset(sub).evaluate(q_t)
-                ok = c_t <= cost_a[sub]
+                ok = c_t <= cost[sub]
                 put, take = sub[ok], ok.nonzero().flatten()
-                q_a[:, put] = q_t[:, take]
-                ap_a[..., put] = ap_t[..., take]
-                x_a[..., put] = x_t[..., take]
-                r_a[..., put] = r_t[..., take]
-                cost_a[put] = c_t[take]
+                q[:, put] = q_t[:, take]
+                ap[..., put] = ap_t[..., take]
+                x[..., put] = x_t[..., take]
+                r[..., put] = r_t[..., take]
+                cost[put] = c_t[take]
                 accepted[put] = True
                 alpha *= 0.5
             small = delta.abs().amax(0) < tol
             # No descent even with a gradient-descent-sized step: converged if that is rounding, i.e. the
             # projected gradient (m² per rad) is nil next to sqrt(eps) x the residual norm x a 1 m lever.
-            stuck = ~accepted & (lam_a >= 1e6)
-            stationary = stationarity <= eps_rel * cost_a.clamp_min(tiny_cost).sqrt()
-            exact = cost_a <= tiny_cost  # targets on the manifold, met to ~1 µm per joint
+            stuck = ~accepted & (lam >= 1e6)
+            stationary = stationarity <= eps_rel * cost.clamp_min(tiny_cost).sqrt()
+            exact = cost <= tiny_cost  # targets on the manifold, met to ~1 µm per joint
             done = (full & (small | (rel_dec < ftol))) | stuck | exact
-            lam_a = torch.where(full, (lam_a * 0.3).clamp_min(1e-7), lam_a * torch.where(accepted, 3.0, 30.0))
-            if rows is None:
-                q, ap, x, r, cost, lam = q_a, ap_a, x_a, r_a, cost_a, lam_a
-                idx = torch.arange(B, device=device)
-            else:
-                idx = rows
-                q[:, idx], ap[..., idx], x[..., idx], r[..., idx] = q_a, ap_a, x_a, r_a
-                cost[idx], lam[idx] = cost_a, lam_a
-            converged[idx[done & (~stuck | stationary)]] = True
-            n_iter[idx[done]] = it + 1
-            active[idx[done]] = False
-            rows = active.nonzero().flatten()
+            lam = torch.where(full, (lam * 0.3).clamp_min(1e-7), lam * torch.where(accepted, 3.0, 30.0))
+            fin = done.nonzero().flatten()
+            if fin.numel() == 0:
+                continue
+            idx = rows.index_select(0, fin)
+            converged[idx[(~stuck | stationary)[fin]]] = True
+            n_iter[idx] = it + 1
+            q_out[:, idx] = q.index_select(-1, fin)
+            x_out[..., idx] = x.index_select(-1, fin)
+            cost_out[idx] = cost.index_select(0, fin)
+            keep = (~done).nonzero().flatten()
+            rows = rows.index_select(0, keep)
             if rows.numel() == 0:
                 break
+            P = P.subset(keep)
+            q, ap, x, r, cost, lam = (t.index_select(-1, keep) for t in (q, ap, x, r, cost, lam))
+        if rows.numel():  # out of iterations
+            q_out[:, rows], x_out[..., rows], cost_out[rows] = q, x, cost
+        q, x, cost = q_out, x_out, cost_out
 
     if torch.is_grad_enabled() and (
         targets.requires_grad or theta_init.requires_grad or _needs(joint_weights)
