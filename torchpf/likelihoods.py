@@ -251,6 +251,16 @@ class _ImageLikelihood(Likelihood):
     def n_cameras(self) -> int:
         return len(self.sizes)
 
+    def distances(self, theta: torch.Tensor, obs) -> torch.Tensor:
+        """The per-camera distances ``D_l`` of the cue (its class docstring says what and in which units; 0
+        is best): ``(..., N, D) -> (..., N, V)``. Silhouette, dual-silhouette and skin-blob cues have them."""
+        obs = self._select(obs)
+        batch = theta.shape[:-1]
+        return self._distances(theta.reshape(-1, theta.shape[-1]), obs).reshape(*batch, -1)
+
+    def _distances(self, theta: torch.Tensor, obs) -> torch.Tensor:
+        raise NotImplementedError(f"{type(self).__name__} has no per-camera distances")
+
     def _camera(self, v: int, like: torch.Tensor) -> _CameraView:
         kw = {"dtype": like.dtype, "device": like.device}
         K = self.K[v].to(**kw)
@@ -376,13 +386,6 @@ class SilhouetteLikelihood(_ImageLikelihood):
             w = w / (1.0 + others)
         return caps, pts, w
 
-    def distances(self, theta: torch.Tensor, obs) -> torch.Tensor:
-        """The similarity distances D_l: (..., N, V) share of model area outside each mask (0 is best)."""
-        obs = self._select(obs)
-        batch = theta.shape[:-1]
-        flat = theta.reshape(-1, theta.shape[-1])
-        return self._distances(flat, obs).reshape(*batch, -1)
-
     def _distances(self, theta, obs: Silhouettes):
         self._check_cameras(obs.masks.shape[0], "the observation")
         a, b, r = self._capsules(theta)
@@ -431,12 +434,6 @@ class DualSilhouetteLikelihood(_ImageLikelihood):
     ):
         super().__init__(skeleton, cameras, bones)
         self.sigma, self.n_samples, self.softness = float(sigma), int(n_samples), float(softness)
-
-    def distances(self, theta: torch.Tensor, obs) -> torch.Tensor:
-        """(..., N, V) share of the foreground points not covered by the model (0 is best)."""
-        obs = self._select(obs)
-        batch = theta.shape[:-1]
-        return self._distances(theta.reshape(-1, theta.shape[-1]), obs).reshape(*batch, -1)
 
     def _distances(self, theta, obs: Silhouettes):
         self._check_cameras(obs.masks.shape[0], "the observation")
@@ -616,7 +613,8 @@ _DEFAULT_MARKERS = (
 
 class SkinBlobLikelihood(_ImageLikelihood):
     """Fontmarty et al. §3.2.3: ``D_l = (1/3) sum_i I_skin_dist(p_i)``, ``log p = -sum_l D_l^2 / 2 sigma^2``
-    with ``p_i`` the projections of virtual markers on the head and hands.
+    with ``p_i`` the projections of virtual markers on the head and hands (``D_l`` in pixels of the distance
+    image).
 
     Args:
         markers: one entry per virtual marker: a joint name (or index), or a tuple of joints whose mean
@@ -655,12 +653,6 @@ class SkinBlobLikelihood(_ImageLikelihood):
         """(..., D) -> (..., M, 3) world positions of the virtual markers."""
         J = self._joints(theta)
         return torch.einsum("...jk,jm->...mk", J, self.marker_matrix.to(J))
-
-    def distances(self, theta: torch.Tensor, obs) -> torch.Tensor:
-        """(..., N, V) mean marker distance D_l (pixels)."""
-        obs = self._select(obs)
-        batch = theta.shape[:-1]
-        return self._distances(theta.reshape(-1, theta.shape[-1]), obs).reshape(*batch, -1)
 
     def _distances(self, theta, obs: DistanceMaps):
         self._check_cameras(obs.distance.shape[0], "the observation")
