@@ -171,9 +171,8 @@ class _Tree:
         self.body_parent = body_parent
         self._kernel_structure = None
         where = {dof: i for i, dof in enumerate(flat) if dof < D}
-        # a DOF in no body's run solves to 0 (it points at a padding slot, whose solution is 0)
-        pad = next((i for i, dof in enumerate(flat) if dof >= D), len(flat))
-        self.delta_gather = torch.tensor([where.get(dof, pad) for dof in range(D)], dtype=torch.long)
+        # a DOF in no body's run solves to 0: it points at the zero row appended after the levels' solutions
+        self.delta_gather = torch.tensor([where.get(dof, len(flat)) for dof in range(D)], dtype=torch.long)
         self._device_cache: dict = {}
 
     def kernel_structure(self):
@@ -213,7 +212,7 @@ class _Tree:
                 "levels": levels,
                 "dof_mask": dof_mask,  # (D, J)
                 "anc_mask": dof_mask.t().contiguous(),  # (J, D)
-                "revolute": self.revolute.to(device),
+                "revolute": self.revolute.to(device)[:, None, None],
                 "revf": self.revolute.to(device=device, dtype=dtype)[:, None, None],
                 "delta_gather": self.delta_gather.to(device),
                 # (n_bodies + 1, J) 0/1: which body carries each joint's point mass (points moved by no DOF go
@@ -287,7 +286,7 @@ def _twists(tree: _Tree, ap: Tensor, centre: Tensor) -> Tensor:
     """
     c = tree.on(ap.device, ap.dtype)
     a = ap[:, 0]
-    v = torch.where(c["revf"] > 0, _cross(ap[:, 1] - centre, a), a)
+    v = torch.where(c["revolute"], _cross(ap[:, 1] - centre, a), a)
     return torch.cat([a * c["revf"], v], 1)
 
 
@@ -466,6 +465,7 @@ def _aba_solve(
             qdd = Dinv_u
             acc = _dot(St, qdd[:, :, None], 1)
         out.append(qdd.reshape(-1, B))
+    out.append(tw.new_zeros(1, B))
     return torch.cat(out, 0).index_select(0, c["delta_gather"]) * freef
 
 

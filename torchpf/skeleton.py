@@ -154,37 +154,37 @@ def _feature_basis(kind: str, axis: torch.Tensor) -> torch.Tensor:
     return G
 
 
-def _run_coefficients(static: torch.Tensor, motions: list) -> torch.Tensor:
-    """(12, P) matrix W with top3x4(S @ M_1(q_1) @ ... @ M_m(q_m)) = W @ monomials.
+def _run_frame(static: torch.Tensor, motions: list, moving: int) -> torch.Tensor:
+    """(P, 4, 4) matrices G with ``S @ M_1(q_1) @ ... @ M_moving(q_moving) = sum_p monomial_p G_p``.
 
-    The monomials are the products of one feature per DOF, the first DOF's feature varying slowest.
+    The monomials are the run's: the products of one feature per DOF, the first DOF's feature varying
+    slowest. DOFs after ``moving`` do not move this frame: only their constant feature (the last one)
+    enters, with the identity.
     """
-    acc = static[None]  # (P, 4, 4)
-    for kind, axis, _ in motions:
-        acc = (acc[:, None] @ _feature_basis(kind, axis)[None]).reshape(-1, 4, 4)
-    return acc[:, :3, :].reshape(-1, 12).t().contiguous()
+    acc = static[None]
+    for j, (kind, axis, _) in enumerate(motions):
+        G = _feature_basis(kind, axis)
+        if j >= moving:
+            G = torch.zeros_like(G)
+            G[-1] = torch.eye(4, dtype=G.dtype)
+        acc = (acc[:, None] @ G[None]).reshape(-1, 4, 4)
+    return acc
+
+
+def _run_coefficients(static: torch.Tensor, motions: list) -> torch.Tensor:
+    """(12, P) matrix W with top3x4(S @ M_1(q_1) @ ... @ M_m(q_m)) = W @ monomials (:func:`_run_frame`)."""
+    return _run_frame(static, motions, len(motions))[:, :3, :].reshape(-1, 12).t().contiguous()
 
 
 def _run_axes(static: torch.Tensor, motions: list, pivots: bool) -> torch.Tensor:
     """(3m or 6m, P) matrix A with, for DOF i of the run, rows ``3i..3i+2`` its axis and (``pivots``) rows
-    ``3m + 3i..3m + 3i+2`` its pivot (a point on the axis), in the run's parent frame, as ``A @ monomials``
-    (the monomials of :func:`_run_coefficients`).
-
-    Both are those of the frame ``S @ M_1 @ ... @ M_{i-1}`` right above DOF ``i``, which does not depend on
-    ``q_i ... q_m``: for those DOFs only the constant feature (the last one) enters, with the identity.
+    ``3m + 3i..3m + 3i+2`` its pivot (a point on the axis), in the run's parent frame, as ``A @ monomials``:
+    those of the frame ``S @ M_1 @ ... @ M_{i-1}`` right above DOF ``i`` (:func:`_run_frame`).
     """
-    axes, points = [], []
-    for i, (_, axis_i, _) in enumerate(motions):
-        acc = static[None]
-        for j, (kind, axis, _) in enumerate(motions):
-            G = _feature_basis(kind, axis)
-            if j >= i:
-                G = torch.zeros_like(G)
-                G[-1] = torch.eye(4, dtype=G.dtype)
-            acc = (acc[:, None] @ G[None]).reshape(-1, 4, 4)
-        axes.append((acc[:, :3, :3] @ axis_i).t())
-        points.append(acc[:, :3, 3].t())
-    return torch.cat(axes + (points if pivots else []), 0).contiguous()
+    frames = [_run_frame(static, motions, i) for i in range(len(motions))]
+    axes = [(f[:, :3, :3] @ axis).t() for f, (_, axis, _) in zip(frames, motions, strict=True)]
+    points = [f[:, :3, 3].t() for f in frames] if pivots else []
+    return torch.cat(axes + points, 0).contiguous()
 
 
 def _pivot_is_origin(motions: list) -> bool:
