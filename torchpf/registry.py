@@ -1,0 +1,115 @@
+"""One registry mechanism for everything chosen by name: resamplers, likelihoods, filters, motion priors.
+
+A :class:`Registry` maps lower-case names to objects (functions, classes or factories). Code inside the
+library registers with the :meth:`Registry.register` decorator; outside packages register through a
+``importlib.metadata`` entry-point group (loaded lazily on first lookup), which is how ``priors`` offers its
+motion priors to ``torchpf`` without ``torchpf`` importing ``priors``. A lookup of an unknown name raises a
+``ValueError`` that lists the registered names, so a CLI can print it as a one-line error.
+
+Example::
+
+    from torchpf.registry import Registry
+    SHAPES = Registry("shape")
+
+    @SHAPES.register("disc")
+    def disc(radius): ...
+
+    SHAPES.get("disc")        # -> disc;  SHAPES.get("blob") -> ValueError: unknown shape 'blob'; choose ...
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator, Mapping
+from importlib.metadata import entry_points
+from typing import Any, Generic, TypeVar
+
+T = TypeVar("T")
+
+
+class Registry(Mapping[str, T], Generic[T]):
+    """Name -> object table of one kind (``kind`` names it in error messages).
+
+    Args:
+        kind: what the entries are, for messages (``"resampler"``, ``"likelihood"``).
+        entry_point_group: optional entry-point group whose entries are added, unloaded, on first lookup
+            (``entry.load()`` runs when the name is first used).
+        aliases: extra names for registered entries (``{"condensation": "sir"}``).
+    """
+
+    def __init__(self, kind: str, entry_point_group: str | None = None, aliases: Mapping[str, str] = ()):
+        self.kind = kind
+        self.entry_point_group = entry_point_group
+        self._entries: dict[str, T] = {}
+        self._entry_points: dict[str, Any] | None = None if entry_point_group else {}
+        self._aliases = {k.lower(): v.lower() for k, v in dict(aliases).items()}
+
+    # ------------------------------------------------------------------ registering
+    def register(self, name: str, obj: T | None = None, *, replace: bool = False):
+        """Register ``obj`` under ``name`` (lower-cased); without ``obj``, a decorator that does so."""
+
+        def add(value: T) -> T:
+            key = name.lower()
+            if not replace and (key in self._entries or key in self._aliases):
+                raise ValueError(f"a {self.kind} named {name!r} is already registered")
+            self._entries[key] = value
+            return value
+
+        return add if obj is None else add(obj)
+
+    # ------------------------------------------------------------------ lookup
+    def _outside(self) -> dict[str, Any]:
+        if self._entry_points is None:
+            self._entry_points = {ep.name.lower(): ep for ep in entry_points(group=self.entry_point_group)}
+        return self._entry_points
+
+    def _key(self, name: str) -> str:
+        key = name.lower()
+        return self._aliases.get(key, key)
+
+    def __getitem__(self, name: str) -> T:
+        key = self._key(name)
+        if key not in self._entries:
+            outside = self._outside()
+            if key not in outside:
+                raise KeyError(name)
+            self._entries[key] = outside[key].load()
+        return self._entries[key]
+
+    def get(self, name: str, default: Any = None) -> T:  # type: ignore[override]
+        """The entry called ``name`` (case-insensitive, aliases followed); an unknown name raises
+        ``ValueError`` naming the registered ones (``default`` is accepted for ``Mapping`` compatibility and
+        returned instead when given)."""
+        try:
+            return self[name]
+        except KeyError:
+            if default is not None:
+                return default
+            raise ValueError(f"unknown {self.kind} {name!r}; choose from {self.names()}") from None
+
+    def resolve(self, spec: str | T) -> T:
+        """``spec`` itself when it is not a string, else the entry it names (see :meth:`get`)."""
+        return self.get(spec) if isinstance(spec, str) else spec
+
+    def names(self, aliases: bool = False) -> list[str]:
+        """Sorted registered names (with the aliases when ``aliases``)."""
+        names = set(self._entries) | set(self._outside())
+        if aliases:
+            names |= set(self._aliases)
+        return sorted(names)
+
+    def __contains__(self, name: object) -> bool:
+        return isinstance(name, str) and (
+            self._key(name) in self._entries or self._key(name) in self._outside()
+        )
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self.names())
+
+    def __len__(self) -> int:
+        return len(self.names())
+
+    def __repr__(self) -> str:
+        return f"Registry({self.kind!r}, {self.names()})"
+
+
+Factory = Callable[..., Any]
