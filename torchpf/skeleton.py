@@ -619,6 +619,12 @@ class Skeleton(nn.Module):
         D = len(self.dof_names)
         return axes.permute(2, 0, 1).reshape(*batch, D, 3), pivots.permute(2, 0, 1).reshape(*batch, D, 3)
 
+    @property
+    def dof_revolute(self) -> torch.Tensor:
+        """(D,) bool: True for a revolute DOF (radians), False for a prismatic one (metres), from the URDF
+        joint types (never from names)."""
+        return self._dof_revolute.clone()
+
     def clamp(self, theta: torch.Tensor) -> torch.Tensor:
         """``theta`` (..., D) clamped into ``[lower, upper]`` per DOF (differentiable inside the limits)."""
         lo = self.lower.to(device=theta.device, dtype=theta.dtype)
