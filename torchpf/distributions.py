@@ -132,6 +132,10 @@ class Dynamics(nn.Module):
     def sample_from_noise(self, x: Tensor, eps: Tensor, *, extras=None) -> Tensor:
         raise TypeError(f"{type(self).__name__} has no sample_from_noise(x, eps); QRS sampling needs it")
 
+    def has_noise_map(self) -> bool:
+        """Whether :meth:`sample_from_noise` is implemented (quasi-Monte-Carlo sampling needs it)."""
+        return type(self).sample_from_noise is not Dynamics.sample_from_noise
+
     def init_extras(self, x0: Tensor) -> dict[str, Tensor]:
         return {}
 
@@ -168,6 +172,9 @@ class _DuckDynamics(Dynamics):
         if fn is None:
             return super().sample_from_noise(x, eps)
         return fn(x, eps, **self._kw(extras))
+
+    def has_noise_map(self):
+        return callable(getattr(self.inner, "sample_from_noise", None))
 
     def init_extras(self, x0):
         fn = getattr(self.inner, "init_extras", None)

@@ -21,11 +21,14 @@ Example::
 
 from __future__ import annotations
 
-import math
-
 import torch
 
+from torchpf.distributions import wrap_angle
+from torchpf.filters import weights
 from torchpf.geometry import capsule_distance
+
+#: ``(..., N)`` log-weights -> ``(...)`` ESS (0 for a dead row); one home: :func:`torchpf.filters.weights.ess`
+effective_sample_size = weights.ess
 
 
 def _runs(truth: torch.Tensor, estimates: torch.Tensor) -> torch.Tensor:
@@ -108,7 +111,7 @@ def per_joint_error(truth: torch.Tensor, estimates: torch.Tensor) -> torch.Tenso
 def angle_mse(
     truth: torch.Tensor, estimates: torch.Tensor, revolute: torch.Tensor | None = None
 ) -> torch.Tensor:
-    """Mean squared joint-angle error (rad^2) as in Rius et al.; revolute differences wrapped to (-pi, pi].
+    """Mean squared joint-angle error (rad^2) as in Rius et al.; revolute differences wrapped to [-pi, pi).
 
     Args:
         truth: (..., D) angles; estimates: broadcastable (..., D).
@@ -116,27 +119,10 @@ def angle_mse(
             metres) are left out.
     """
     diff = estimates - truth
-    diff = torch.remainder(diff + math.pi, 2 * math.pi) - math.pi
+    diff = wrap_angle(diff)
     if revolute is not None:
         diff = diff[..., revolute.to(device=diff.device, dtype=torch.bool)]
     return diff.pow(2).mean()
-
-
-def effective_sample_size(log_weights: torch.Tensor) -> torch.Tensor:
-    """Hauberg eq. 17 with squared weights (as Brubaker eq. 18): ``1 / sum_n w_n^2`` of normalised weights.
-
-    Args:
-        log_weights: (..., N) unnormalised log-weights.
-
-    Returns:
-        (...,) ESS in [1, N]; 0 where every weight is -inf or NaN.
-    """
-    lw = log_weights.masked_fill(torch.isnan(log_weights), -math.inf)
-    norm = torch.logsumexp(lw, -1, keepdim=True)
-    ok = torch.isfinite(norm.squeeze(-1))
-    lw = torch.where(ok[..., None], lw - norm, torch.zeros_like(lw))
-    ess = torch.exp(-torch.logsumexp(2 * lw, -1))
-    return torch.where(ok, ess, torch.zeros_like(ess))
 
 
 def mean_ess(ess_per_frame: torch.Tensor) -> torch.Tensor:

@@ -38,9 +38,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from torchpf.filters import protocols as P
-
-_LOG_2PI = math.log(2 * math.pi)
+from torchpf.distributions import LOG_2PI, Dynamics, as_dynamics, diag_normal_log_prob, randn_like
 
 
 def _buffer(value: Tensor | float) -> Tensor:
@@ -53,21 +51,7 @@ def _like(t: Tensor, x: Tensor) -> Tensor:
     return t.to(device=x.device, dtype=x.dtype)
 
 
-def _randn(like: Tensor, generator: torch.Generator | None) -> Tensor:
-    return torch.randn(like.shape, generator=generator, device=like.device, dtype=like.dtype)
-
-
-def _diag_normal_log_prob(residual: Tensor, std: Tensor) -> Tensor:
-    """``log N(residual; 0, diag std^2)`` summed over the last dim: ``(..., D) -> (...)``."""
-    z = residual / std
-    return (
-        -0.5 * (z * z).sum(-1)
-        - torch.log(std).expand(residual.shape).sum(-1)
-        - 0.5 * residual.shape[-1] * _LOG_2PI
-    )
-
-
-class GaussianRandomWalk(nn.Module):
+class GaussianRandomWalk(Dynamics):
     """Random-walk dynamics ``x_t = x_{t-1} + std * eps`` (Fontmarty §3.1, Table 5; Brubaker eq. 11).
 
     Args:
@@ -78,20 +62,20 @@ class GaussianRandomWalk(nn.Module):
         super().__init__()
         self.register_buffer("std", _buffer(std))
 
-    def sample(self, x: Tensor, generator: torch.Generator | None = None) -> Tensor:
+    def sample(self, x: Tensor, generator: torch.Generator | None = None, *, extras=None) -> Tensor:
         """``(..., N, D) -> (..., N, D)``."""
-        return self.sample_from_noise(x, _randn(x, generator))
+        return self.sample_from_noise(x, randn_like(x, generator))
 
-    def sample_from_noise(self, x: Tensor, eps: Tensor) -> Tensor:
+    def sample_from_noise(self, x: Tensor, eps: Tensor, *, extras=None) -> Tensor:
         """``x + std * eps`` with ``eps (..., N, D)`` standard normal."""
         return x + _like(self.std, x) * eps
 
-    def log_prob(self, x_new: Tensor, x_old: Tensor) -> Tensor:
+    def log_prob(self, x_new: Tensor, x_old: Tensor, *, extras=None) -> Tensor:
         """``log N(x_new; x_old, diag std^2)``: ``(..., N, D) -> (..., N)``."""
-        return _diag_normal_log_prob(x_new - x_old, _like(self.std, x_new))
+        return diag_normal_log_prob(x_new, x_old, self.std)
 
 
-class LinearGaussianDynamics(nn.Module):
+class LinearGaussianDynamics(Dynamics):
     """Linear-Gaussian dynamics ``x_t = A x_{t-1} + b + L eps``, ``Q = L L^T`` (column-vector convention).
 
     Args:
@@ -112,22 +96,22 @@ class LinearGaussianDynamics(nn.Module):
         """Predicted mean ``A x + b``: ``(..., D) -> (..., D)``."""
         return x @ _like(self.transition, x).T + _like(self.offset, x)
 
-    def sample(self, x: Tensor, generator: torch.Generator | None = None) -> Tensor:
+    def sample(self, x: Tensor, generator: torch.Generator | None = None, *, extras=None) -> Tensor:
         """``(..., N, D) -> (..., N, D)``."""
-        return self.sample_from_noise(x, _randn(x, generator))
+        return self.sample_from_noise(x, randn_like(x, generator))
 
-    def sample_from_noise(self, x: Tensor, eps: Tensor) -> Tensor:
+    def sample_from_noise(self, x: Tensor, eps: Tensor, *, extras=None) -> Tensor:
         """``A x + b + L eps`` with ``eps (..., N, D)`` standard normal."""
         return self.mean(x) + eps @ _like(self.chol, x).T
 
-    def log_prob(self, x_new: Tensor, x_old: Tensor) -> Tensor:
+    def log_prob(self, x_new: Tensor, x_old: Tensor, *, extras=None) -> Tensor:
         """``log N(x_new; A x_old + b, Q)``: ``(..., N, D) -> (..., N)``."""
         chol = _like(self.chol, x_new)
         r = x_new - self.mean(x_old)
         # One triangular solve with all particles as right-hand sides (a batch of tiny solves is far slower).
         z = torch.linalg.solve_triangular(chol, r.reshape(-1, r.shape[-1]).T, upper=False).T.reshape(r.shape)
         logdet = torch.log(torch.diagonal(chol)).sum()
-        return -0.5 * (z * z).sum(-1) - logdet - 0.5 * x_new.shape[-1] * _LOG_2PI
+        return -0.5 * (z * z).sum(-1) - logdet - 0.5 * x_new.shape[-1] * LOG_2PI
 
 
 class Gaussian(nn.Module):
@@ -148,10 +132,10 @@ class Gaussian(nn.Module):
         return m.unsqueeze(-2) if m.ndim > 1 else m
 
     def sample(self, like: Tensor, generator: torch.Generator | None = None) -> Tensor:
-        return self._mean(like) + _like(self.std, like) * _randn(like, generator)
+        return self._mean(like) + _like(self.std, like) * randn_like(like, generator)
 
     def log_prob(self, x: Tensor) -> Tensor:
-        return _diag_normal_log_prob(x - self._mean(x), _like(self.std, x))
+        return diag_normal_log_prob(x, self._mean(x), self.std)
 
 
 class ObservationGaussian(nn.Module):
@@ -169,11 +153,13 @@ class ObservationGaussian(nn.Module):
 
     def sample(self, obs: Any, like: Tensor, generator: torch.Generator | None = None) -> Tensor:
         """Draws shaped like ``like (..., N, D)``."""
-        return _like(self.mean_fn(obs), like).unsqueeze(-2) + _like(self.std, like) * _randn(like, generator)
+        return _like(self.mean_fn(obs), like).unsqueeze(-2) + _like(self.std, like) * randn_like(
+            like, generator
+        )
 
     def log_prob(self, x: Tensor, obs: Any) -> Tensor:
         """``(..., N, D) -> (..., N)``."""
-        return _diag_normal_log_prob(x - _like(self.mean_fn(obs), x).unsqueeze(-2), _like(self.std, x))
+        return diag_normal_log_prob(x, _like(self.mean_fn(obs), x).unsqueeze(-2), self.std)
 
 
 class BootstrapProposal(nn.Module):
@@ -181,11 +167,11 @@ class BootstrapProposal(nn.Module):
 
     def __init__(self, dynamics: Any):
         super().__init__()
-        self.dynamics = dynamics
+        self.dynamics = as_dynamics(dynamics)
 
     def sample(self, state: Any, obs: Any, generator: torch.Generator | None = None) -> tuple[Tensor, Tensor]:
-        x = P.dynamics_sample(self.dynamics, state.particles, state.extras, generator)
-        return x, P.dynamics_log_prob(self.dynamics, x, state.particles, state.extras)
+        x = self.dynamics.sample(state.particles, generator, extras=state.extras)
+        return x, self.dynamics.log_prob(x, state.particles, extras=state.extras).to(x.dtype)
 
 
 class ICondensationProposal(nn.Module):
@@ -212,7 +198,7 @@ class ICondensationProposal(nn.Module):
             raise ValueError(f"need alpha, beta >= 0 and alpha + beta <= 1, got {alpha}, {beta}")
         if prior is None and rest > 1e-12:
             raise ValueError("a prior p0 is needed when alpha + beta < 1")
-        self.dynamics = dynamics
+        self.dynamics = as_dynamics(dynamics)
         self.importance = importance
         self.prior = prior
         self.alpha = float(alpha)
@@ -223,7 +209,7 @@ class ICondensationProposal(nn.Module):
         """``state.particles (..., N, D)`` parents -> ``(x (..., N, D), log_q (..., N))``."""
         parents, extras = state.particles, state.extras
         x_pi = self.importance.sample(obs, parents, generator)
-        x_dyn = P.dynamics_sample(self.dynamics, parents, extras, generator)
+        x_dyn = self.dynamics.sample(parents, generator, extras=extras)
         u = torch.rand(parents.shape[:-1], generator=generator, device=parents.device, dtype=parents.dtype)
         x = torch.where((u < self.alpha).unsqueeze(-1), x_pi, x_dyn)
         if self.prior is not None and self.rest > 0:
@@ -237,9 +223,8 @@ class ICondensationProposal(nn.Module):
         if self.alpha > 0:
             terms.append(math.log(self.alpha) + self.importance.log_prob(x, obs).to(x.dtype))
         if self.beta > 0:
-            terms.append(
-                math.log(self.beta) + P.dynamics_log_prob(self.dynamics, x, state.particles, state.extras)
-            )
+            log_p = self.dynamics.log_prob(x, state.particles, extras=state.extras).to(x.dtype)
+            terms.append(math.log(self.beta) + log_p)
         if self.rest > 0:
             terms.append(math.log(self.rest) + self.prior.log_prob(x).to(x.dtype))
         return torch.logsumexp(torch.stack(terms), 0)

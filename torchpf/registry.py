@@ -56,6 +56,10 @@ class Registry(Mapping[str, T], Generic[T]):
 
         return add if obj is None else add(obj)
 
+    def unregister(self, name: str) -> T:
+        """Remove and return the entry registered as ``name`` (a ``KeyError`` if there is none)."""
+        return self._entries.pop(name.lower())
+
     # ------------------------------------------------------------------ lookup
     def _outside(self) -> dict[str, Any]:
         if self._entry_points is None:

@@ -18,8 +18,8 @@ and return ancestor indices ``(..., N)`` (``torch.long``; sorted, except the mul
 resampling). A row whose weights are all ``-inf`` or NaN has no distribution to sample; it
 gets the identity ``a_i = i`` so that callers can flag the frame instead of crashing.
 
-Schemes are registered by name with :func:`register_resampler` and looked up with :func:`get_resampler`, so a
-filter takes ``resampler="systematic"`` or any callable with the same signature.
+Schemes are registered by name in :data:`RESAMPLERS` (the library's one :class:`~torchpf.registry.Registry`
+mechanism), so a filter takes ``resampler="systematic"`` or any callable with the same signature.
 
 Example::
 
@@ -36,34 +36,14 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
+from torchpf.registry import Registry
+
 Resampler = Callable[[Tensor, "torch.Generator | None"], Tensor]
 """Signature of a scheme: ``(log_weights (..., N), generator) -> ancestors (..., N) long``."""
 
-RESAMPLERS: dict[str, Resampler] = {}
-"""Registry of resampling schemes by name; extend it with :func:`register_resampler`."""
-
-
-def register_resampler(name: str) -> Callable[[Resampler], Resampler]:
-    """Decorator that registers a resampling scheme under ``name`` (lower case) in :data:`RESAMPLERS`."""
-
-    def decorator(fn: Resampler) -> Resampler:
-        key = name.lower()
-        if key in RESAMPLERS:
-            raise ValueError(f"a resampler named {name!r} is already registered")
-        RESAMPLERS[key] = fn
-        return fn
-
-    return decorator
-
-
-def get_resampler(scheme: str | Resampler) -> Resampler:
-    """Return the scheme registered as ``scheme``, or ``scheme`` itself if it is a callable."""
-    if callable(scheme):
-        return scheme
-    try:
-        return RESAMPLERS[scheme.lower()]
-    except (KeyError, AttributeError):
-        raise ValueError(f"unknown resampler {scheme!r}; registered: {sorted(RESAMPLERS)}") from None
+RESAMPLERS: Registry[Resampler] = Registry("resampler")
+"""Resampling schemes by name (:class:`torchpf.registry.Registry`); add one with
+``@RESAMPLERS.register("name")``, look one up with ``RESAMPLERS.resolve(name_or_callable)``."""
 
 
 def resample(
@@ -80,7 +60,7 @@ def resample(
     Returns:
         ``(..., N)`` long ancestor indices into the last dim of ``log_weights``.
     """
-    return get_resampler(scheme)(log_weights, generator)
+    return RESAMPLERS.resolve(scheme)(log_weights, generator)
 
 
 def offspring_counts(ancestors: Tensor, n: int | None = None) -> Tensor:
@@ -118,7 +98,7 @@ def _uniform(shape: tuple[int, ...], like: Tensor, generator: torch.Generator | 
     return torch.rand(shape, generator=generator, device=like.device, dtype=like.dtype)
 
 
-@register_resampler("multinomial")
+@RESAMPLERS.register("multinomial")
 def multinomial(log_weights: Tensor, generator: torch.Generator | None = None) -> Tensor:
     """Multinomial resampling: ``N`` i.i.d. categorical draws (returned sorted). ``(..., N) -> (..., N)``."""
     cdf, bad = _cdf(log_weights)
@@ -126,7 +106,7 @@ def multinomial(log_weights: Tensor, generator: torch.Generator | None = None) -
     return _search(cdf, u, bad)
 
 
-@register_resampler("stratified")
+@RESAMPLERS.register("stratified")
 def stratified(log_weights: Tensor, generator: torch.Generator | None = None) -> Tensor:
     """Stratified resampling: ``u_k = (k + U_k) / N`` with independent ``U_k``. ``(..., N) -> (..., N)``."""
     cdf, bad = _cdf(log_weights)
@@ -136,7 +116,7 @@ def stratified(log_weights: Tensor, generator: torch.Generator | None = None) ->
     return _search(cdf, u, bad)
 
 
-@register_resampler("systematic")
+@RESAMPLERS.register("systematic")
 def systematic(log_weights: Tensor, generator: torch.Generator | None = None) -> Tensor:
     """Systematic resampling: ``u_k = (k + U) / N`` with one ``U`` per row. ``(..., N) -> (..., N)``."""
     cdf, bad = _cdf(log_weights)
@@ -146,7 +126,7 @@ def systematic(log_weights: Tensor, generator: torch.Generator | None = None) ->
     return _search(cdf, u, bad)
 
 
-@register_resampler("residual")
+@RESAMPLERS.register("residual")
 def residual(log_weights: Tensor, generator: torch.Generator | None = None) -> Tensor:
     """Residual resampling: ``floor(N w_j)`` deterministic copies, the rest multinomial on the residuals.
 

@@ -21,7 +21,13 @@ from torchpf.filters import (
     qrs_normal,
 )
 from torchpf.filters.qmc import rank_within_parent
-from torchpf.proposals import Gaussian, GaussianRandomWalk, ICondensationProposal, ObservationGaussian
+from torchpf.proposals import (
+    Gaussian,
+    GaussianRandomWalk,
+    ICondensationProposal,
+    LinearGaussianDynamics,
+    ObservationGaussian,
+)
 
 D = 3
 STD = 0.3
@@ -175,8 +181,11 @@ def test_invalid_configuration_raises():
         AnnealedParticleFilter(dyn, lik, alphas=(2.0, 4.0, 4.0))  # layer 1 is the proposal
     with pytest.raises(ValueError):
         AnnealedParticleFilter(dyn, lik, alphas=(1.0, 4.0, 4.0), annealing_rate=0.5)
-    with pytest.raises(ValueError):
-        AnnealedParticleFilter(object(), lik)  # no diffusion_std and no dynamics.std
+    no_std = LinearGaussianDynamics(torch.eye(D), 0.01 * torch.eye(D))
+    with pytest.raises(ValueError, match="diffusion_std"):
+        AnnealedParticleFilter(no_std, lik)  # no diffusion_std and no dynamics.std
+    with pytest.raises(TypeError, match="sample"):
+        ParticleFilter(object(), lik)  # not a dynamics at all
     with pytest.raises(ValueError):
         PartitionedParticleFilter(dyn, [lik], [[0], [1]])
     with pytest.raises(ValueError):

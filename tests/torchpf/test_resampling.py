@@ -7,13 +7,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from torchpf.resampling import (
-    RESAMPLERS,
-    get_resampler,
-    offspring_counts,
-    register_resampler,
-    resample,
-)
+from torchpf.resampling import RESAMPLERS, offspring_counts, resample
 
 SCHEMES = ["multinomial", "systematic", "stratified", "residual"]
 LOW_VARIANCE = ["systematic", "stratified", "residual"]
@@ -128,21 +122,21 @@ def test_same_generator_state_same_ancestors(scheme):
 
 def test_registry():
     assert set(SCHEMES) <= set(RESAMPLERS)
-    assert get_resampler("Systematic") is RESAMPLERS["systematic"]
+    assert RESAMPLERS.resolve("Systematic") is RESAMPLERS["systematic"]
     with pytest.raises(ValueError, match="unknown resampler"):
-        get_resampler("nope")
+        RESAMPLERS.resolve("nope")
     with pytest.raises(ValueError, match="already registered"):
-        register_resampler("multinomial")(lambda lw, g: lw)
+        RESAMPLERS.register("multinomial")(lambda lw, g: lw)
 
     def keep_all(log_weights, generator=None):
         return torch.arange(log_weights.shape[-1]).expand(log_weights.shape)
 
-    assert get_resampler(keep_all) is keep_all
-    register_resampler("test_keep_all")(keep_all)
+    assert RESAMPLERS.resolve(keep_all) is keep_all
+    RESAMPLERS.register("test_keep_all")(keep_all)
     try:
         assert torch.equal(resample(torch.zeros(5), "test_keep_all"), torch.arange(5))
     finally:
-        del RESAMPLERS["test_keep_all"]
+        RESAMPLERS.unregister("test_keep_all")
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")

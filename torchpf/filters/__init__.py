@@ -2,8 +2,9 @@
 
 A filter approximates the posterior ``p(x_t | z_{1:t})`` over a state vector (a pose ``theta``, ``D`` DOFs) by
 ``N`` weighted particles, for any number of independent sequences at once (leading dims ``...``). Models are
-separate duck-typed objects (:mod:`torchpf.filters.protocols`): a dynamics ``p(x_t | x_{t-1})`` with
-``sample(x, generator)`` / ``log_prob(x_new, x_old)``, a likelihood ``(x, obs) -> (..., N)`` log-density and,
+separate objects (:mod:`torchpf.filters.protocols`): a dynamics ``p(x_t | x_{t-1})``
+(:class:`torchpf.distributions.Dynamics`, or any object with ``sample(x, generator)`` / ``log_prob(x_new,
+x_old)``), a likelihood ``(x, obs) -> (..., N)`` log-density and,
 optionally, a proposal (:mod:`torchpf.proposals`). The state is an immutable
 :class:`~torchpf.filters.state.ParticleState` passed in and out of ``step``; nothing is stored on the filter.
 
@@ -19,10 +20,10 @@ class                           what it does                                   s
 ``MCMCParticleFilter``          SIR + hybrid Monte Carlo rejuvenation moves    Brubaker Alg. 3-4, eq. 21-22
 ==============================  ============================================  ============================
 
-Conventions: log-weights everywhere (normalised with ``logsumexp``); randomness only through an explicit
-``torch.Generator`` (same generator state, same result; it must live on the particles' device); device and
-dtype follow ``x0``. A frame where every weight is ``-inf``/NaN keeps the predicted particles with uniform
-weights, adds nothing to the log-evidence and is flagged (``Track.failed``).
+Conventions: log-weights everywhere, handled only by :mod:`torchpf.filters.weights`; randomness only through
+an explicit ``torch.Generator`` (same generator state, same result; it must live on the particles' device);
+device and dtype follow ``x0``. A frame where every weight is ``-inf``/NaN keeps the predicted particles with
+uniform weights, adds nothing to the log-evidence and is flagged (``Track.failed``).
 
 Example::
 
@@ -32,12 +33,13 @@ Example::
 """
 
 from torchpf.filters.annealed import AnnealedParticleFilter, anneal_beta
-from torchpf.filters.base import ParticleFilter, reweight
+from torchpf.filters.base import ParticleFilter
 from torchpf.filters.mcmc import MCMCParticleFilter, hmc_move
 from torchpf.filters.partitioned import PartitionedParticleFilter
-from torchpf.filters.protocols import Dynamics, Likelihood, Proposal, StatefulDynamics
+from torchpf.filters.protocols import Dynamics, Likelihood, Proposal
 from torchpf.filters.qmc import qrs_normal, sobol_normal
 from torchpf.filters.state import ParticleState, Track, gather_particles
+from torchpf.filters.weights import ess, normalise, reweight, temper
 
 __all__ = [
     "AnnealedParticleFilter",
@@ -48,8 +50,10 @@ __all__ = [
     "ParticleState",
     "PartitionedParticleFilter",
     "Proposal",
-    "StatefulDynamics",
     "Track",
+    "ess",
+    "normalise",
+    "temper",
     "anneal_beta",
     "gather_particles",
     "hmc_move",

@@ -50,25 +50,9 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from torchpf.filters import protocols as P
-from torchpf.filters.base import ParticleFilter, reweight
+from torchpf.filters.base import ParticleFilter
 from torchpf.filters.state import ParticleState, gather_particles
-
-
-def temper(beta: Tensor, energy: Tensor) -> Tensor:
-    """``beta * energy`` with ``-inf``/NaN energies kept at ``-inf`` (``0 * -inf`` would be NaN).
-
-    ``beta (...)`` broadcast against ``energy (..., N)``.
-    """
-    energy = torch.nan_to_num(energy, nan=-math.inf, posinf=math.inf, neginf=-math.inf)
-    out = beta.unsqueeze(-1) * energy
-    return torch.where(energy == -math.inf, torch.full_like(out, -math.inf), out)
-
-
-def survival_fraction(log_weights: Tensor) -> Tensor:
-    """``ESS / N`` of unnormalised log-weights ``(..., N) -> (...)`` (NaN when all are ``-inf``)."""
-    n = log_weights.shape[-1]
-    return torch.exp(2 * torch.logsumexp(log_weights, -1) - torch.logsumexp(2 * log_weights, -1)) / n
+from torchpf.filters.weights import reweight, survival_fraction, temper
 
 
 def anneal_beta(
@@ -222,23 +206,12 @@ class AnnealedParticleFilter(ParticleFilter):
             x = x + math.sqrt(self.diffusion_scales[layer]) * std * noise
             energy = self._loglik(self.likelihood, x, obs)
             if self.layer_prior:
-                energy = energy + P.dynamics_log_prob(self.dynamics, x, x_prev, extras_prev)
+                energy = energy + self.dynamics.log_prob(x, x_prev, extras=extras_prev).to(x.dtype)
             beta = self._beta(layer, uniform, energy, beta)
             log_w, _, failed_l = reweight(uniform, temper(beta, energy))
             failed = failed | failed_l
             betas.append(beta)
         failed = failed | failed_ev
-        inc = torch.where(failed, torch.zeros_like(inc), inc)
-        return ParticleState(
-            particles=x,
-            log_weights=log_w,
-            log_evidence=state.log_evidence + inc,
-            extras=P.update_extras(self.dynamics, x, x_prev, extras_prev),
-            aux=state.aux,
-            info={
-                "failed": failed,
-                "resampled": resampled,
-                "log_evidence_increment": inc,
-                "betas": torch.stack(betas, -1),
-            },
+        return self._end_frame(
+            state, x, log_w, inc, failed, resampled, x_prev, extras_prev, betas=torch.stack(betas, -1)
         )

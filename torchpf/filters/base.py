@@ -31,39 +31,21 @@ import torch
 from torch import Tensor, nn
 from tqdm.auto import tqdm
 
-from torchpf.filters import protocols as P
+from torchpf.distributions import as_dynamics
 from torchpf.filters.qmc import qrs_normal
-from torchpf.filters.state import ParticleState, Track, gather_particles, normalise_log_weights
-from torchpf.resampling import get_resampler
+from torchpf.filters.state import ParticleState, Track, gather_particles
+from torchpf.filters.weights import normalise, reweight
+from torchpf.resampling import RESAMPLERS
 
 _STANDARD_INFO = ("failed", "resampled", "log_evidence_increment", "ess")
-
-
-def reweight(log_weights: Tensor, increment: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """Add an incremental log-weight and renormalise, in log space.
-
-    Args:
-        log_weights: ``(..., N)`` normalised log-weights before the update.
-        increment: ``(..., N)`` log of the incremental weight (NaN counts as ``-inf``).
-
-    Returns:
-        ``(log_weights (..., N), log_normaliser (...), failed (...) bool)``. ``log_normaliser`` is
-        ``logsumexp(log_weights + increment)``, the log of the evidence increment. Rows with a non-finite
-        normaliser are *failed*: they get uniform weights and a normaliser that callers must not use.
-    """
-    total = torch.nan_to_num(log_weights + increment, nan=-math.inf, posinf=math.inf, neginf=-math.inf)
-    lse = torch.logsumexp(total, -1)
-    failed = ~torch.isfinite(lse)
-    uniform = torch.full_like(total, -math.log(total.shape[-1]))
-    new = torch.where(failed.unsqueeze(-1), uniform, total - lse.unsqueeze(-1))
-    return new, lse, failed
 
 
 class ParticleFilter(nn.Module):
     """SIR particle filter with ESS-triggered resampling (Brubaker Alg. 1).
 
     Args:
-        dynamics: motion prior, see :class:`~torchpf.filters.protocols.Dynamics`.
+        dynamics: motion prior, see :class:`~torchpf.distributions.Dynamics` (or a duck-typed
+            object, adapted by :func:`~torchpf.distributions.as_dynamics`).
         likelihood: ``(x (..., N, D), obs) -> (..., N)`` log-likelihood.
         proposal: importance distribution with ``sample(state, obs, generator) -> (x, log_q)``; ``None``
             is the bootstrap filter (proposal = dynamics, no correction).
@@ -106,13 +88,14 @@ class ParticleFilter(nn.Module):
                 raise ValueError(
                     "sampling='qrs' draws from the dynamics; it cannot be combined with a proposal"
                 )
-            if not hasattr(dynamics, "sample_from_noise"):
-                raise ValueError("sampling='qrs' needs dynamics.sample_from_noise(x, eps)")
+        dynamics = as_dynamics(dynamics)
+        if sampling == "qrs" and not dynamics.has_noise_map():
+            raise ValueError("sampling='qrs' needs dynamics.sample_from_noise(x, eps)")
         self.dynamics = dynamics
         self.likelihood = likelihood
         self.proposal = proposal
         self.n_particles = n_particles
-        self.resampler = get_resampler(resampler)
+        self.resampler = RESAMPLERS.resolve(resampler)
         self.ess_threshold = float(ess_threshold)
         self.sampling = sampling
         self.progress = progress
@@ -122,8 +105,7 @@ class ParticleFilter(nn.Module):
     def init(self, x0: Tensor, extras: Mapping[str, Tensor] | None = None) -> ParticleState:
         """Initial state from particles ``x0 (..., N, D)`` (or ``(..., 1, D)``), uniform weights.
 
-        ``extras`` (per-particle ``(..., N, *k)`` tensors) default to ``dynamics.init_extras(x0)`` when the
-        dynamics defines it, else to none.
+        ``extras`` (per-particle ``(..., N, *k)`` tensors) default to ``dynamics.init_extras(x0)``.
         """
         if x0.ndim < 2 or not x0.is_floating_point():
             raise ValueError(f"x0 must be a floating tensor (..., N, D), got shape {tuple(x0.shape)}")
@@ -133,7 +115,7 @@ class ParticleFilter(nn.Module):
         elif x0.shape[-2] != n:
             raise ValueError(f"x0 has {x0.shape[-2]} particles, the filter was built for {n}")
         if extras is None:
-            extras = self.dynamics.init_extras(x0) if hasattr(self.dynamics, "init_extras") else {}
+            extras = self.dynamics.init_extras(x0)
         extras = dict(extras)
         for key, value in extras.items():
             if value.shape[: x0.ndim - 1] != x0.shape[:-1]:
@@ -246,7 +228,7 @@ class ParticleFilter(nn.Module):
         self, state: ParticleState, generator: torch.Generator | None
     ) -> tuple[ParticleState, Tensor, Tensor]:
         """ESS-triggered resampling (Brubaker Alg. 1): ``(state, ancestors (..., N), resampled (...))``."""
-        log_w = normalise_log_weights(state.log_weights)
+        log_w = normalise(state.log_weights)
         state = state.replace(log_weights=log_w)
         n = state.n_particles
         identity = torch.arange(n, device=log_w.device).expand(log_w.shape)
@@ -272,9 +254,9 @@ class ParticleFilter(nn.Module):
     ) -> Tensor:
         """Draw from the dynamics, i.i.d. (``"mc"``) or with per-parent Sobol noise (``"qrs"``)."""
         if self.sampling == "qrs":
-            eps = qrs_normal(ancestors, P.noise_dim(self.dynamics, x.shape[-1]), generator, x.dtype)
-            return P.dynamics_from_noise(self.dynamics, x, eps, extras)
-        return P.dynamics_sample(self.dynamics, x, extras, generator)
+            eps = qrs_normal(ancestors, self.dynamics.noise_size(x.shape[-1]), generator, x.dtype)
+            return self.dynamics.sample_from_noise(x, eps, extras=extras)
+        return self.dynamics.sample(x, generator, extras=extras)
 
     def _propose(
         self, state: ParticleState, ancestors: Tensor, obs: Any, generator: torch.Generator | None
@@ -283,7 +265,7 @@ class ParticleFilter(nn.Module):
         if self.proposal is None:
             return self._sample_dynamics(state.particles, state.extras, ancestors, generator), None
         x, log_q = self.proposal.sample(state, obs, generator)
-        log_p = P.dynamics_log_prob(self.dynamics, x, state.particles, state.extras)
+        log_p = self.dynamics.log_prob(x, state.particles, extras=state.extras).to(x.dtype)
         return x, log_p - log_q.to(x.dtype)
 
     def _sir_step(
@@ -296,16 +278,38 @@ class ParticleFilter(nn.Module):
         if log_corr is not None:
             increment = increment + log_corr
         log_w, lse, failed = reweight(state.log_weights, increment)
-        inc = torch.where(failed, torch.zeros_like(lse), lse)
-        new = ParticleState(
+        new = self._end_frame(state, x, log_w, lse, failed, resampled, state.particles, state.extras)
+        return new, state.particles, state.extras
+
+    def _end_frame(
+        self,
+        state: ParticleState,
+        x: Tensor,
+        log_w: Tensor,
+        increment: Tensor,
+        failed: Tensor,
+        resampled: Tensor,
+        x_prev: Tensor,
+        extras_prev: Mapping[str, Tensor],
+        aux: Mapping[str, Tensor] | None = None,
+        **info: Tensor,
+    ) -> ParticleState:
+        """The state at the end of a frame, the same for every filter.
+
+        ``x (..., N, D)`` and ``log_w (..., N)`` are the frame's final particles and weights, ``increment
+        (...)`` its log-evidence increment (dropped where ``failed``: a failed frame adds nothing), ``x_prev``
+        and ``extras_prev`` each particle's frame-start parent and its extras (the dynamics' extras are
+        updated from them once, here); ``info`` adds filter-specific diagnostics.
+        """
+        inc = torch.where(failed, torch.zeros_like(increment), increment)
+        return ParticleState(
             particles=x,
             log_weights=log_w,
             log_evidence=state.log_evidence + inc,
-            extras=P.update_extras(self.dynamics, x, state.particles, state.extras),
-            aux=state.aux,
-            info={"failed": failed, "resampled": resampled, "log_evidence_increment": inc},
+            extras=self.dynamics.update_extras(x, x_prev, extras_prev),
+            aux=state.aux if aux is None else aux,
+            info={"failed": failed, "resampled": resampled, "log_evidence_increment": inc, **info},
         )
-        return new, state.particles, state.extras
 
     @staticmethod
     def _gather(ancestors: Tensor, *tensors: Tensor) -> list[Tensor]:

@@ -42,7 +42,6 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from torchpf.filters import protocols as P
 from torchpf.filters.base import ParticleFilter
 from torchpf.filters.state import ParticleState, gather_particles
 
@@ -181,7 +180,7 @@ class MCMCParticleFilter(ParticleFilter):
     def _log_target(self, obs: Any, x_prev: Tensor, extras_prev: Mapping[str, Tensor]) -> Callable:
         def log_target(q: Tensor) -> Tensor:
             lik = self._loglik(self.likelihood, q, obs)
-            return lik + P.dynamics_log_prob(self.dynamics, q, x_prev, extras_prev)
+            return lik + self.dynamics.log_prob(q, x_prev, extras=extras_prev).to(q.dtype)
 
         return log_target
 
@@ -214,11 +213,18 @@ class MCMCParticleFilter(ParticleFilter):
         q = torch.where(failed[..., None, None], chosen.particles, q)
         acceptance = n_accepted / max(self.n_moves, 1)
         aux["hmc_frames"] = aux["hmc_frames"] + 1
-        info = dict(weighted.info)
-        info.update(ess=weighted.ess(), acceptance=acceptance, step_size=step_used)
-        return chosen.replace(
-            particles=q,
-            extras=P.update_extras(self.dynamics, q, x_prev, extras_prev),
+        info = weighted.info
+        return self._end_frame(
+            state,
+            q,
+            chosen.log_weights,
+            info["log_evidence_increment"],
+            failed,
+            info["resampled"],
+            x_prev,
+            extras_prev,
             aux=aux,
-            info=info,
+            ess=weighted.ess(),
+            acceptance=acceptance,
+            step_size=step_used,
         )

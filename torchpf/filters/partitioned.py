@@ -35,9 +35,9 @@ from typing import Any
 import torch
 from torch import nn
 
-from torchpf.filters import protocols as P
-from torchpf.filters.base import ParticleFilter, reweight
+from torchpf.filters.base import ParticleFilter
 from torchpf.filters.state import ParticleState, gather_particles
+from torchpf.filters.weights import reweight
 
 
 class PartitionedParticleFilter(ParticleFilter):
@@ -118,12 +118,4 @@ class PartitionedParticleFilter(ParticleFilter):
             inc = inc + torch.where(failed_m, torch.zeros_like(lse), lse)
             failed = failed | failed_m
         # A frame that failed at any stage adds nothing to the evidence (its partial sum means nothing).
-        inc = torch.where(failed, torch.zeros_like(inc), inc)
-        return ParticleState(
-            particles=x,
-            log_weights=log_w,
-            log_evidence=state.log_evidence + inc,
-            extras=P.update_extras(self.dynamics, x, x_prev, extras_prev),
-            aux=state.aux,
-            info={"failed": failed, "resampled": resampled, "log_evidence_increment": inc},
-        )
+        return self._end_frame(state, x, log_w, inc, failed, resampled, x_prev, extras_prev)

@@ -21,6 +21,8 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
+from torchpf.filters import weights
+
 
 def gather_particles(values: Tensor, ancestors: Tensor) -> Tensor:
     """Per-particle rows: ``values (..., N, *rest)``, ``ancestors (..., M)`` -> ``(..., M, *rest)``."""
@@ -28,12 +30,6 @@ def gather_particles(values: Tensor, ancestors: Tensor) -> Tensor:
     rest = values.shape[dim + 1 :]
     index = ancestors.reshape(ancestors.shape + (1,) * len(rest)).expand(ancestors.shape + rest)
     return values.gather(dim, index)
-
-
-def normalise_log_weights(log_weights: Tensor) -> Tensor:
-    """``(..., N)`` log-weights -> the same shifted so that ``logsumexp`` is 0 (NaN counts as ``-inf``)."""
-    lw = torch.nan_to_num(log_weights, nan=-math.inf, posinf=math.inf, neginf=-math.inf)
-    return lw - torch.logsumexp(lw, -1, keepdim=True)
 
 
 @dataclass(frozen=True)
@@ -46,7 +42,7 @@ class ParticleState:
         log_evidence: ``(...)`` running estimate of ``log p(z_{1:t})`` in nats (0 at ``init``).
         extras: per-particle tensors ``(..., N, *k)`` that ride along with the particles (a velocity, a
             phase, an action label); every resampling gathers them with the particles. See
-            :class:`torchpf.filters.protocols.StatefulDynamics` for how dynamics read and update them.
+            :class:`torchpf.distributions.Dynamics` for how dynamics read and update them.
         aux: per-sequence filter bookkeeping carried from step to step (e.g. the HMC step size ``(...)``).
         info: diagnostics of the step that produced this state, each ``(..., *k)``: ``"failed"`` (bool, all
             weights were ``-inf``/NaN), ``"resampled"`` (bool), ``"log_evidence_increment"`` and
@@ -76,12 +72,12 @@ class ParticleState:
 
     def weights(self) -> Tensor:
         """Normalised weights ``(..., N)`` (computed from the log-weights with a softmax)."""
-        return torch.softmax(torch.nan_to_num(self.log_weights, nan=-math.inf), -1)
+        return weights.probabilities(self.log_weights)
 
     def ess(self) -> Tensor:
-        """Effective sample size ``(...)``, ``1 / sum_i w_i^2`` (Brubaker eq. 18), in ``[1, N]``."""
-        lw = normalise_log_weights(self.log_weights)
-        return torch.exp(-torch.logsumexp(2 * lw, -1))
+        """Effective sample size ``(...)``, ``1 / sum_i w_i^2`` (Brubaker eq. 18), in ``[1, N]`` (0 when every
+        weight is ``-inf``; :func:`torchpf.filters.weights.ess`)."""
+        return weights.ess(self.log_weights)
 
     def mean(self) -> Tensor:
         """MMSE estimate ``sum_i w_i x_i``: ``(..., D)`` (Brubaker eq. 16 with ``f(x) = x``)."""
