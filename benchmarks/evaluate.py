@@ -82,10 +82,11 @@ if str(REPO) not in sys.path:  # run as a script from anywhere: `training` is a 
 from torchpf import Skeleton, metrics  # noqa: E402
 from torchpf.assets import path as asset_path  # noqa: E402
 from torchpf.camera import camera_ring  # noqa: E402
+from torchpf.distributions import DYNAMICS, make_dynamics  # noqa: E402
 from torchpf.observations import DistanceMaps  # noqa: E402
 from torchpf.proposals import GaussianRandomWalk  # noqa: E402
 from torchpf.synth import SynthOptions, synthesize  # noqa: E402
-from torchpf.tracker import Tracker, available_dynamics, body_partition, make_dynamics  # noqa: E402
+from torchpf.tracker import Tracker  # noqa: E402
 
 FILTER_LABELS = {
     "sir": "CONDENSATION",
@@ -404,24 +405,8 @@ def table5_std(skeleton: Skeleton, fps: float = TABLE5_FPS, scale: float = 1.0) 
 def resolve_dynamics(cfg: EvalConfig) -> str:
     """ "table5" or "random_walk": which motion prior the run uses (``auto`` prefers the registered one)."""
     if cfg.dynamics == "auto":
-        return "random_walk" if "random_walk" in available_dynamics() else "table5"
+        return "random_walk" if "random_walk" in DYNAMICS else "table5"
     return cfg.dynamics
-
-
-def particles_per_filter(name: str, budget: int, cfg: EvalConfig, skeleton: Skeleton) -> tuple[int, int]:
-    """(particles, likelihood evaluations per frame) of filter ``name`` under the budget ``N``."""
-    if name in ("sir", "qrs"):
-        return budget, budget
-    if name == "apf":
-        n = max(1, budget // 3)  # Tracker's rule: 3 layers (Fontmarty §3.3.2)
-        return n, 3 * n
-    if name in ("partitioned", "partitioned_qrs"):
-        m = len(body_partition(skeleton))
-        n = max(1, budget // m)
-        return n, m * n
-    per_particle = 1 + cfg.mcmc_moves * (cfg.mcmc_leapfrog + 1)  # SIR weight + per move: L+1 gradients
-    n = max(1, budget // per_particle)
-    return n, n * per_particle
 
 
 def make_prior(seq: EvalSequence, cfg: EvalConfig, dynamics: str):
@@ -437,11 +422,9 @@ def make_tracker(seq: EvalSequence, name: str, budget: int, cfg: EvalConfig, dyn
     """The tracker of ``name`` at budget ``N`` with the harness's likelihood and prior."""
     likelihood = {c: 1.0 for c in cfg.cues}
     prior = make_prior(seq, cfg, dynamics)
-    options, n = {}, budget
+    options = {}
     if name == "mcmc":
-        # Tracker passes n_particles to the MCMC filter unchanged; the HMC moves' gradients must come out of
-        # the same budget, so hand it the particle count directly.
-        n = particles_per_filter(name, budget, cfg, seq.skeleton)[0]
+        # the Tracker takes the HMC moves' gradients out of the same budget (FilterKind.for_budget)
         options = {
             "n_moves": cfg.mcmc_moves,
             "n_leapfrog": cfg.mcmc_leapfrog,
@@ -456,7 +439,7 @@ def make_tracker(seq: EvalSequence, name: str, budget: int, cfg: EvalConfig, dyn
         likelihood=likelihood if len(likelihood) > 1 else cfg.cues[0],
         dynamics=prior,
         filter=name,
-        n_particles=n,
+        n_particles=budget,
         filter_options=options,
         progress=False,
     )
@@ -511,8 +494,8 @@ def run_benchmark(cfg: EvalConfig, progress: bool = False, log=None) -> Benchmar
         result.sequences[seq.name] = {"source": source, "action": seq.action, "frames": K, "fps": seq.fps}
         for name in cfg.filters:
             for budget in cfg.particles:
-                n_particles, evaluations = particles_per_filter(name, budget, cfg, seq.skeleton)
                 tracker = make_tracker(seq, name, budget, cfg, dynamics)
+                n_particles, evaluations = tracker.filter.n_particles, tracker.likelihood_evaluations
                 estimates, seconds, ess, degenerate = [], [], [], []
                 for r in range(cfg.runs):
                     track = tracker.track(seq.frames, init=seq.angles[0], seed=cfg.seed + r, fps=seq.fps)

@@ -4,6 +4,7 @@
 * :func:`wrap_angle` -- angles to ``[-π, π)``.
 * :func:`as_generator` -- a seed or a generator -> a ``torch.Generator`` on the particles' device.
 * :func:`flatten_batch` / :func:`unflatten_batch` -- free leading dims ``...`` to one and back.
+* :data:`DYNAMICS` / :func:`make_dynamics` -- motion priors by name.
 * :class:`Dynamics` -- base of motion models ``p(x_t | x_{t-1})`` with no-op hooks for per-particle extras,
   so that filters call every model the same way; :func:`as_dynamics` adapts a duck-typed object once.
 
@@ -30,6 +31,8 @@ from collections.abc import Mapping
 
 import torch
 from torch import Tensor, nn
+
+from torchpf.registry import Registry
 
 LOG_2PI = math.log(2 * math.pi)
 
@@ -201,3 +204,16 @@ def as_dynamics(model) -> Dynamics:
     if not callable(getattr(model, "sample", None)):
         raise TypeError(f"dynamics must have a sample(x, generator) method, got {type(model).__name__}")
     return _DuckDynamics(model)
+
+
+#: Motion priors by name: factories ``factory(skeleton, **options) -> Dynamics``. The ``priors``
+#: package registers ``random_walk``, ``constant_velocity``, ``damped`` and ``action`` through the
+#: ``torchpf.dynamics`` entry-point group (so torchpf never imports priors); ``DYNAMICS.register(name,
+#: factory)`` adds one at run time.
+DYNAMICS: Registry = Registry("dynamics", entry_point_group="torchpf.dynamics")
+
+
+def make_dynamics(name: str, skeleton, **options) -> Dynamics:
+    """Build the motion prior registered as ``name`` for ``skeleton``: ``DYNAMICS.get(name)(skeleton,
+    **options)`` (an unknown name raises a ``ValueError`` listing the registered ones)."""
+    return DYNAMICS.get(name)(skeleton, **options)

@@ -41,19 +41,14 @@ import os
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from importlib.metadata import entry_points
 from typing import Any
 
 import torch
 from torch import nn
 
 from torchpf import likelihoods as L
-from torchpf.filters import (
-    AnnealedParticleFilter,
-    MCMCParticleFilter,
-    ParticleFilter,
-    PartitionedParticleFilter,
-)
+from torchpf.distributions import DYNAMICS, as_generator, make_dynamics
+from torchpf.filters.registry import FILTERS
 from torchpf.io import write_mocap_csv
 
 LIKELIHOODS: dict[str, type] = {
@@ -65,8 +60,6 @@ LIKELIHOODS: dict[str, type] = {
     "chamfer": L.ChamferLikelihood,
     "skin": L.SkinBlobLikelihood,
 }
-FILTERS = ("sir", "condensation", "qrs", "partitioned", "partitioned_qrs", "apf", "mcmc")
-DYNAMICS_GROUP = "torchpf.dynamics"
 
 
 def _diffusion_std(dynamics) -> Any:
@@ -78,19 +71,6 @@ def _diffusion_std(dynamics) -> Any:
                 return value
         dynamics = getattr(dynamics, "dynamics", None)
     return None
-
-
-def available_dynamics() -> dict[str, Any]:
-    """Motion priors registered under the ``torchpf.dynamics`` entry-point group: name -> entry point."""
-    return {ep.name: ep for ep in entry_points(group=DYNAMICS_GROUP)}
-
-
-def make_dynamics(name: str, skeleton, **options) -> Any:
-    """Build the registered motion prior ``name`` for ``skeleton`` (``factory(skeleton, **options)``)."""
-    eps = available_dynamics()
-    if name not in eps:
-        raise ValueError(f"unknown dynamics {name!r}; registered: {sorted(eps)}")
-    return eps[name].load()(skeleton, **options)
 
 
 def _spec_names(spec) -> list[str]:
@@ -268,7 +248,7 @@ class Tracker(nn.Module):
 
             skeleton = Skeleton.from_urdf(skeleton)
         if filter not in FILTERS:
-            raise ValueError(f"unknown filter {filter!r}; choose from {FILTERS}")
+            raise ValueError(f"unknown filter {filter!r}; choose from {FILTERS.names(aliases=True)}")
         if n_particles < 1:
             raise ValueError(f"n_particles must be >= 1, got {n_particles}")
         self.skeleton = skeleton
@@ -279,13 +259,13 @@ class Tracker(nn.Module):
         if isinstance(dynamics, str):
             options = dict(dynamics_options or {})
             if fps is not None and "fps" not in options:
-                factory = available_dynamics().get(dynamics)
-                if factory is not None and "fps" in inspect.signature(factory.load()).parameters:
+                factory = DYNAMICS.get(dynamics) if dynamics in DYNAMICS else None
+                if factory is not None and "fps" in inspect.signature(factory).parameters:
                     options["fps"] = fps  # a random walk's per-frame std depends on the frame rate
             dynamics = make_dynamics(dynamics, skeleton, **options)
         self.dynamics = dynamics
         self.proposal = proposal
-        self.filter_name = "sir" if filter == "condensation" else filter
+        self.filter_name = "sir" if filter.lower() == "condensation" else filter.lower()
         self.n_particles = int(n_particles)
         self.filter_options = dict(filter_options or {})
         self.init_spread = init_spread
@@ -335,59 +315,20 @@ class Tracker(nn.Module):
     # ------------------------------------------------------------------ assembly
     def _build_filter(self):
         opts = dict(self.filter_options)
-        n, name = self.n_particles, self.filter_name
-        common = {
-            "progress": self.progress,
-            **{k: opts.pop(k) for k in ("resampler", "ess_threshold") if k in opts},
-        }
-        if name in ("sir", "qrs"):
-            return ParticleFilter(
-                self.dynamics,
-                self.likelihood,
-                self.proposal,
-                n_particles=n,
-                sampling="qrs" if name == "qrs" else "mc",
-                **common,
-                **opts,
-            )
-        if name in ("partitioned", "partitioned_qrs"):
+        opts.setdefault("progress", self.progress)
+        kind = FILTERS.get(self.filter_name)
+        if kind.partitioned:
             per_limb = opts.pop("per_limb", True)
             partial = opts.pop("partial_likelihoods", False)
             groups = opts.pop("groups", None) or body_partition(self.skeleton, per_limb=per_limb)
-            per_stage = max(1, n // len(groups))
             stages = self._stage_likelihoods(groups) if partial else [self.likelihood] * len(groups)
-            return PartitionedParticleFilter(
-                self.dynamics,
-                stages,
-                groups,
-                n_particles=per_stage,
-                sampling="qrs" if name == "partitioned_qrs" else "mc",
-                **common,
-                **opts,
-            )
-        if name == "apf":
-            betas = opts.get("betas", (0.1, 0.4, 1.0))
-            layers = opts.get("n_layers") or (3 if isinstance(betas, str) else len(betas))
-            if "diffusion_std" not in opts and getattr(self.dynamics, "std", None) is None:
+            n = kind.for_budget(self.n_particles, groups=groups, **opts)
+            return kind.build(self.dynamics, stages, groups, n_particles=n, **opts)
+        if self.filter_name == "apf" and "diffusion_std" not in opts:
+            if getattr(self.dynamics, "std", None) is None:
                 opts["diffusion_std"] = _diffusion_std(self.dynamics)
-            return AnnealedParticleFilter(
-                self.dynamics,
-                self.likelihood,
-                self.proposal,
-                n_particles=max(1, n // layers),
-                **common,
-                **opts,
-            )
-        # each HMC move of L leapfrog steps costs L + 1 likelihood gradients (Brubaker Alg. 4)
-        per_particle = 1 + opts.get("n_moves", 2) * (opts.get("n_leapfrog", 5) + 1)
-        return MCMCParticleFilter(
-            self.dynamics,
-            self.likelihood,
-            self.proposal,
-            n_particles=max(1, n // per_particle),
-            **common,
-            **opts,
-        )
+        n = kind.for_budget(self.n_particles, **opts)
+        return kind.build(self.dynamics, self.likelihood, self.proposal, n_particles=n, **opts)
 
     def _stage_likelihoods(self, groups: list[list[int]]) -> list:
         """Partial likelihoods l_m of Fontmarty Table 2 (``filter_options={"partial_likelihoods": True}``):
@@ -416,14 +357,7 @@ class Tracker(nn.Module):
     @property
     def likelihood_evaluations(self) -> int:
         """Likelihood evaluations per frame of the assembled filter (at most ``n_particles``)."""
-        n = self.filter.n_particles
-        if self.filter_name == "apf":
-            return n * self.filter.n_layers
-        if self.filter_name.startswith("partitioned"):
-            return n * len(self.filter.groups)
-        if self.filter_name == "mcmc":
-            return n * (1 + self.filter.n_moves * (self.filter.n_leapfrog + 1))
-        return n
+        return self.filter.likelihood_evaluations
 
     # ------------------------------------------------------------------ running
     def initial_particles(self, pose: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
@@ -434,8 +368,9 @@ class Tracker(nn.Module):
         pose = torch.as_tensor(pose, dtype=self.dtype).to(self.device)
         n = self.filter.n_particles
         spread = torch.as_tensor(self.init_spread, dtype=self.dtype, device=self.device)
-        noise = torch.randn(n, pose.shape[-1], generator=generator, dtype=self.dtype)
-        x0 = pose + noise.to(self.device) * spread
+        generator = as_generator(generator, self.device)
+        noise = torch.randn(n, pose.shape[-1], generator=generator, dtype=self.dtype, device=self.device)
+        x0 = pose + noise * spread
         x0[0] = pose  # the given pose itself is one of the hypotheses
         return self.skeleton.clamp(x0)
 
@@ -455,7 +390,8 @@ class Tracker(nn.Module):
                 per-frame observations (:class:`~torchpf.observations.Frame` or whatever the likelihood
                 takes).
             init: (D,) initial pose; default the sequence's first ground-truth frame.
-            generator: random generator (on the CPU); default one seeded with ``seed``.
+            generator: random generator; default one seeded with ``seed`` (0). A generator on another device
+                than the tracker's seeds a new one there (:func:`torchpf.distributions.as_generator`).
             fps: frame rate of the result (default: from the sequence's times, else 30).
 
         Returns:
@@ -486,8 +422,8 @@ class Tracker(nn.Module):
             raise ValueError(
                 f"init must be a ({len(self.skeleton.dof_names)},) pose, got {tuple(init.shape)}"
             )
-        if generator is None:
-            generator = torch.Generator().manual_seed(0 if seed is None else int(seed))
+        # one generator on the particles' device drives the run (from the seed, or derived from `generator`)
+        generator = as_generator(generator if generator is not None else int(seed or 0), self.device)
         x0 = self.initial_particles(init, generator)
         observations = [_to_device(f, self.device, self.dtype) for f in frames]
         t0 = time.perf_counter()

@@ -8,7 +8,7 @@ import torch
 from priors.factories import TABLE5, table5_sigma
 from torchpf import Skeleton
 from torchpf.assets import path
-from torchpf.tracker import available_dynamics, make_dynamics
+from torchpf.distributions import DYNAMICS, make_dynamics
 
 
 @pytest.fixture(scope="module")
@@ -50,7 +50,7 @@ def test_table5_on_the_cmu_joint_tree():
 
 
 def test_entry_points_build_working_dynamics(f22):
-    assert {"random_walk", "constant_velocity", "damped", "action"} <= set(available_dynamics())
+    assert {"random_walk", "constant_velocity", "damped", "action"} <= set(DYNAMICS.names())
     gen = torch.Generator().manual_seed(0)
     for name in ("constant_velocity", "damped"):
         dyn = make_dynamics(name, f22, fps=5.0)

@@ -128,19 +128,11 @@ class AnnealedParticleFilter(ParticleFilter):
             progress=progress,
         )
         adaptive = isinstance(betas, str)
-        if adaptive and betas != "adaptive":
-            raise ValueError(f"betas must be a sequence of floats or 'adaptive', got {betas!r}")
-        if adaptive:
-            n_layers = n_layers or (len(alphas) if alphas is not None else 3)
-        else:
+        n_layers = self._layers(betas, n_layers, alphas)
+        if not adaptive:
             betas = tuple(float(b) for b in betas)
-            if n_layers is not None and n_layers != len(betas):
-                raise ValueError(f"n_layers={n_layers} but {len(betas)} betas were given")
-            n_layers = len(betas)
             if any(not 0.0 < b <= 1.0 for b in betas) or betas[-1] != 1.0:
                 raise ValueError(f"betas must lie in (0, 1] and end with 1, got {betas}")
-        if n_layers < 1:
-            raise ValueError("an APF needs at least one layer")
         if annealing_rate is not None:
             if alphas is not None:
                 raise ValueError("give either alphas (Fontmarty) or annealing_rate (Brubaker), not both")
@@ -171,6 +163,31 @@ class AnnealedParticleFilter(ParticleFilter):
         self.diffusion_std = diffusion_std
         self.survival_rate = survival_rate
         self.layer_prior = layer_prior
+
+    @staticmethod
+    def _layers(betas: Sequence[float] | str, n_layers: int | None, alphas: Sequence[float] | None) -> int:
+        """``L``: ``len(betas)``, or for ``betas="adaptive"`` ``n_layers`` / ``len(alphas)`` / 3."""
+        if isinstance(betas, str):
+            if betas != "adaptive":
+                raise ValueError(f"betas must be a sequence of floats or 'adaptive', got {betas!r}")
+            n_layers = n_layers or (len(alphas) if alphas is not None else 3)
+        else:
+            if n_layers is not None and n_layers != len(betas):
+                raise ValueError(f"n_layers={n_layers} but {len(betas)} betas were given")
+            n_layers = len(betas)
+        if n_layers < 1:
+            raise ValueError("an APF needs at least one layer")
+        return n_layers
+
+    @classmethod
+    def evaluations_per_particle(cls, **options: Any) -> int:
+        """``L``: every layer weights all ``N`` particles (Fontmarty §3.3.2: APF at ``N / 3`` per layer)."""
+        return cls._layers(
+            options.get("betas", (0.1, 0.4, 1.0)), options.get("n_layers"), options.get("alphas")
+        )
+
+    def budget_options(self) -> dict[str, Any]:
+        return {"betas": "adaptive", "n_layers": self.n_layers}
 
     def _beta(self, layer: int, base: Tensor, energy: Tensor, lower: Tensor) -> Tensor:
         if not self.adaptive:

@@ -31,7 +31,7 @@ import torch
 from torch import Tensor, nn
 from tqdm.auto import tqdm
 
-from torchpf.distributions import as_dynamics
+from torchpf.distributions import as_dynamics, as_generator
 from torchpf.filters.qmc import qrs_normal
 from torchpf.filters.state import ParticleState, Track, gather_particles
 from torchpf.filters.weights import normalise, reweight
@@ -100,6 +100,34 @@ class ParticleFilter(nn.Module):
         self.sampling = sampling
         self.progress = progress
 
+    # ------------------------------------------------------------------ equal likelihood budget
+
+    @classmethod
+    def evaluations_per_particle(cls, **options: Any) -> int:
+        """Likelihood evaluations per particle and frame of this filter built with ``options`` (its
+        constructor keywords; defaults where absent). 1 for the SIR."""
+        return 1
+
+    @classmethod
+    def for_budget(cls, budget: int, **options: Any) -> int:
+        """Particles ``N`` such that this filter, built with ``options``, evaluates the likelihood at most
+        ``budget`` times per frame (Fontmarty §3.3.2: every filter compared at equal likelihood evaluations;
+        an SIR gets ``budget``, an APF of ``L`` layers ``budget // L``, ...). At least 1."""
+        if int(budget) < 1:
+            raise ValueError(f"the likelihood budget must be >= 1, got {budget}")
+        return max(1, int(budget) // cls.evaluations_per_particle(**options))
+
+    def budget_options(self) -> dict[str, Any]:
+        """The constructor keywords that :meth:`evaluations_per_particle` reads, as this filter was built."""
+        return {}
+
+    @property
+    def likelihood_evaluations(self) -> int | None:
+        """Likelihood evaluations per frame (``None`` while ``n_particles`` is taken from ``x0``)."""
+        if self.n_particles is None:
+            return None
+        return self.n_particles * self.evaluations_per_particle(**self.budget_options())
+
     # ------------------------------------------------------------------ public API
 
     def init(self, x0: Tensor, extras: Mapping[str, Tensor] | None = None) -> ParticleState:
@@ -159,7 +187,7 @@ class ParticleFilter(nn.Module):
         self,
         observations: Iterable[Any],
         x0: Tensor,
-        generator: torch.Generator | None = None,
+        generator: torch.Generator | int | None = None,
         *,
         extras: Mapping[str, Tensor] | None = None,
     ) -> Track:
@@ -170,7 +198,8 @@ class ParticleFilter(nn.Module):
                 one ``obs`` for :meth:`step`. For a batch of sequences stored as ``(B, T, ...)`` pass
                 ``obs.transpose(0, 1)``.
             x0: ``(..., N, D)`` initial particles.
-            generator: randomness; the same seed gives the same track.
+            generator: randomness, a generator or a seed; the same seed gives the same track. A generator on
+                another device than ``x0`` seeds one there (:func:`torchpf.distributions.as_generator`).
             extras: initial per-particle extras (see :meth:`init`).
 
         Returns:
@@ -179,6 +208,7 @@ class ParticleFilter(nn.Module):
         total = len(observations) if hasattr(observations, "__len__") else None
         means, maps, ess, incs, failed, resampled = [], [], [], [], [], []
         stats: dict[str, list[Tensor]] = {}
+        generator = as_generator(generator, x0.device)
         with torch.no_grad():
             state = self.init(x0, extras)
             bar = tqdm(observations, total=total, desc=type(self).__name__, disable=not self.progress)

@@ -155,6 +155,15 @@ class MCMCParticleFilter(ParticleFilter):
         self.target_acceptance = target_acceptance
         self.burn_in = burn_in
 
+    @classmethod
+    def evaluations_per_particle(cls, **options: Any) -> int:
+        """``1 + R (L + 1)``: the SIR weight, then per HMC move ``L + 1`` likelihood gradients (Brubaker
+        Alg. 4; a gradient counted as one evaluation)."""
+        return 1 + int(options.get("n_moves", 2)) * (int(options.get("n_leapfrog", 5)) + 1)
+
+    def budget_options(self) -> dict[str, Any]:
+        return {"n_moves": self.n_moves, "n_leapfrog": self.n_leapfrog}
+
     # Robbins-Monro gain 0.5 k^-0.75 on a logit error clipped to +-3 (tuned on Gaussian targets: reaches
     # ~75% within ~15 updates from steps 1000x too small or 30x too large).
     _GAIN, _DECAY, _CLIP = 0.5, 0.75, 3.0

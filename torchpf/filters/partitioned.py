@@ -92,6 +92,17 @@ class PartitionedParticleFilter(ParticleFilter):
         )
         self.groups = groups
 
+    @classmethod
+    def evaluations_per_particle(cls, **options: Any) -> int:
+        """``M``, the number of groups (a partial likelihood per stage; Fontmarty §3.3.2: ``N / M`` per
+        stage). ``options["groups"]`` is required: the cost depends on the partition."""
+        if "groups" not in options:
+            raise ValueError("the partitioned filter's budget depends on its groups: pass groups=")
+        return len(options["groups"])
+
+    def budget_options(self) -> dict[str, Any]:
+        return {"groups": self.groups}
+
     def _check_groups(self, dim: int) -> None:
         if sorted(i for g in self.groups for i in g) != list(range(dim)):
             raise ValueError(f"groups must partition range({dim}) (the state dimension), got {self.groups}")

@@ -12,10 +12,7 @@ import torch
 from torchpf.filters import MCMCParticleFilter, ParticleFilter, PartitionedParticleFilter
 from torchpf.proposals import BootstrapProposal, ICondensationProposal
 
-try:  # tests may or may not be collected as packages
-    from . import linear_gaussian as lg
-except ImportError:
-    import linear_gaussian as lg
+from . import linear_gaussian as lg
 
 N = 20_000
 N_VARIANT = 10_000
