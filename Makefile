@@ -4,7 +4,7 @@ VENV := .venv
 VPY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test lint bench clean
+.PHONY: demo test test-gpu lint bench clean
 
 $(VPY):
 	$(PY) -m venv $(VENV)
@@ -22,6 +22,10 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(VPY) -m ruff check torchpf priors training tests benchmarks
 	$(VPY) -m pytest -q -n 2
+
+# the tests marked `cuda` (the device fixture's CUDA half among them); they skip where no GPU is present
+test-gpu: $(STAMP)
+	$(VPY) -m pytest -q -m cuda
 
 lint: $(STAMP)
 	$(VPY) -m ruff format torchpf priors training tests benchmarks

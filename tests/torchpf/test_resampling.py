@@ -139,10 +139,9 @@ def test_registry():
         RESAMPLERS.unregister("test_keep_all")
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 @pytest.mark.parametrize("scheme", SCHEMES)
-def test_cuda(scheme):
-    g = torch.Generator(device="cuda").manual_seed(0)
-    log_w = torch.randn(3, 1000, device="cuda")
-    anc = resample(log_w, scheme, g)
-    assert anc.device.type == "cuda" and anc.shape == (3, 1000)
+def test_device_and_dtype(scheme, device, dtype, generator):
+    log_w = torch.randn(3, 1000, device=device, dtype=dtype, generator=generator)
+    anc = resample(log_w, scheme, generator)
+    assert anc.device.type == device.type and anc.shape == (3, 1000) and anc.dtype == torch.long
+    assert ((anc >= 0) & (anc < 1000)).all()

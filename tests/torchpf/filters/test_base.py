@@ -284,28 +284,22 @@ def test_same_seed_same_result(kind):
 
 
 @pytest.mark.parametrize("kind", KINDS)
-@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_dtype_follows_x0(kind, dtype):
-    pf = make_filter(kind)
-    track = pf.run(observations(dtype=dtype), _x0(dtype=dtype), torch.Generator().manual_seed(0))
+def test_device_and_dtype_follow_x0(kind, device, dtype, generator):
+    pf = make_filter(kind).to(device)
+    obs = [(z.to(device), m.to(device)) for z, m in observations(dtype=dtype)]
+    x0 = _x0(dtype=dtype).to(device)
+    track = pf.run(obs, x0, generator)
     for t in (track.estimates, track.ess, track.log_evidence, track.final_state.log_weights):
-        assert t.dtype == dtype
+        assert t.dtype == dtype and t.device.type == device.type
     for value in track.stats.values():
-        assert value.dtype == dtype
+        assert value.dtype == dtype and value.device.type == device.type
     assert torch.all(torch.isfinite(track.estimates))
-
-
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
-@pytest.mark.parametrize("kind", KINDS)
-def test_cuda(kind):
-    pf = make_filter(kind).to("cuda")
-    obs = [(z.cuda(), m.cuda()) for z, m in observations()]
-    g = torch.Generator(device="cuda").manual_seed(0)
-    track = pf.run(obs, _x0().cuda(), g)
-    assert track.estimates.device.type == "cuda" and torch.all(torch.isfinite(track.estimates))
-    a = pf.run(obs, _x0().cuda(), torch.Generator(device="cuda").manual_seed(1))
-    b = pf.run(obs, _x0().cuda(), torch.Generator(device="cuda").manual_seed(1))
-    assert torch.equal(a.estimates, b.estimates)
+    again = pf.run(obs, x0, torch.Generator(device=device).manual_seed(0))
+    assert torch.equal(track.estimates, again.estimates)
+    # a CPU generator or a seed drives a run on any device (as_generator derives one there)
+    from_cpu = pf.run(obs, x0, torch.Generator().manual_seed(0))
+    assert torch.equal(from_cpu.estimates, pf.run(obs, x0, torch.Generator().manual_seed(0)).estimates)
+    assert torch.isfinite(pf.run(obs, x0, 3).estimates).all()
 
 
 # --------------------------------------------------------------------------- resampling policy
