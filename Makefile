@@ -32,7 +32,7 @@ lint: $(STAMP)
 	$(VPY) -m ruff check --fix torchpf priors training tests benchmarks
 
 bench: $(STAMP)
-	$(VPY) benchmarks/fk.py
+	$(VPY) -m benchmarks.fk
 
 clean:
 	rm -rf $(VENV) out .pytest_cache

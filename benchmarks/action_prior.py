@@ -1,7 +1,7 @@
 """Rius et al. Fig. 3: tracking error vs number of particles, 1st-order motion model with and without the
 action constraint, on a held-out real walk seen through synthetic silhouettes.
 
-    python benchmarks/action_prior.py [--particles 100 300 1000 3000 10000] [--frames 15] [--seeds 2]
+    python -m benchmarks.action_prior [--particles 100 300 1000 3000 10000] [--frames 15] [--seeds 2]
 
 Set-up (everything printed at the start of the run):
 

@@ -45,11 +45,11 @@ How to run
 ----------
 ::
 
-    python benchmarks/evaluate.py           # default: 4 sequences, 5 filters, N 100 500, R 2 (minutes)
-    python benchmarks/evaluate.py --quick   # smoke run (seconds)
-    python benchmarks/evaluate.py --particles 100 500 1500 --runs 3 --frames 15
-    python benchmarks/evaluate.py --full    # the paper's grid: N 100..1500, R 10, all 6 filters (hours)
-    python benchmarks/evaluate.py --sequences cmu:16_46,generator:wave --filters apf,partitioned_qrs
+    python -m benchmarks.evaluate           # default: 4 sequences, 5 filters, N 100 500, R 2 (minutes)
+    python -m benchmarks.evaluate --quick   # smoke run (seconds)
+    python -m benchmarks.evaluate --particles 100 500 1500 --runs 3 --frames 15
+    python -m benchmarks.evaluate --full    # the paper's grid: N 100..1500, R 10, all 6 filters (hours)
+    python -m benchmarks.evaluate --sequences cmu:16_46,generator:wave --filters apf,partitioned_qrs
 
 Outputs in ``--out`` (default ``out/evaluate``): ``table.md`` (printed too), ``results.csv`` (one row per
 sequence x filter x N x run, then one ``aggregate`` row per sequence x filter x N), ``frames.csv`` (mean
@@ -75,18 +75,16 @@ from pathlib import Path
 import numpy as np
 import torch
 
-REPO = Path(__file__).resolve().parents[1]
-if str(REPO) not in sys.path:  # run as a script from anywhere: `training` is a top-level package of the repo
-    sys.path.insert(0, str(REPO))
+from torchpf import Skeleton, metrics
+from torchpf.assets import path as asset_path
+from torchpf.camera import camera_ring
+from torchpf.distributions import DYNAMICS, make_dynamics
+from torchpf.observations import DistanceMaps
+from torchpf.proposals import GaussianRandomWalk
+from torchpf.synth import SynthOptions, synthesize
+from torchpf.tracker import Tracker
 
-from torchpf import Skeleton, metrics  # noqa: E402
-from torchpf.assets import path as asset_path  # noqa: E402
-from torchpf.camera import camera_ring  # noqa: E402
-from torchpf.distributions import DYNAMICS, make_dynamics  # noqa: E402
-from torchpf.observations import DistanceMaps  # noqa: E402
-from torchpf.proposals import GaussianRandomWalk  # noqa: E402
-from torchpf.synth import SynthOptions, synthesize  # noqa: E402
-from torchpf.tracker import Tracker  # noqa: E402
+REPO = Path(__file__).resolve().parents[1]
 
 FILTER_LABELS = {
     "sir": "CONDENSATION",
@@ -817,7 +815,7 @@ class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
-        prog="python benchmarks/evaluate.py",
+        prog="python -m benchmarks.evaluate",
         description="Fontmarty et al. evaluation of the particle filters: RMSE, bias, dispersion, failure "
         "rate and ranks at equal numbers of likelihood evaluations (see the module docstring).",
         formatter_class=_HelpFormatter,

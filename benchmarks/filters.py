@@ -7,8 +7,8 @@ move of 3 leapfrog steps, i.e. 4 extra likelihood *gradient* evaluations per par
 cheap synthetic Gaussian around the observed pose, so the figures measure the engine (sampling, weighting,
 resampling, Sobol noise, autograd), not an image likelihood.
 
-    python benchmarks/filters.py                    # CPU, all sizes
-    python benchmarks/filters.py --device cuda --sizes 1000 100000
+    python -m benchmarks.filters                    # CPU, all sizes
+    python -m benchmarks.filters --device cuda --sizes 1000 100000
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Forward-kinematics throughput: torchpf's fused kernel vs pytorch-kinematics, measured in one run.
 
-    python benchmarks/fk.py [--sizes 1000 10000] [--repeats 15] [--device cpu]
+    python -m benchmarks.fk [--sizes 1000 10000] [--repeats 15] [--device cpu]
 
 Skeleton: ``torchpf/assets/human.urdf`` (the CMU joint tree: floating root + 30 ball joints, 96 DOFs,
 38 body-joint positions, 104 pytorch-kinematics frames). Both sides get the same random in-limit poses;

@@ -1,6 +1,6 @@
 """IK projection throughput and accuracy: ``torchpf.ik.project`` on the full-body skeleton (Hauberg eq. 7).
 
-    python benchmarks/ik.py [--sizes 1000 10000] [--noise 0.01] [--repeats 3] [--dtype float32]
+    python -m benchmarks.ik [--sizes 1000 10000] [--noise 0.01] [--repeats 3] [--dtype float32]
 
 Skeleton ``torchpf/assets/human.urdf`` (96 DOFs, 38 joints). Poses are real: frames of the CMU walk
 ``35_02.bvh`` from ``../shared/mocap/cmu`` (random in-limit poses when the clip is missing). Each problem is

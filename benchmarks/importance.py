@@ -1,6 +1,6 @@
 """Hauberg's claim, reproduced: data-driven importance distributions vs the angular prior (Hauberg §6).
 
-    python benchmarks/importance.py [--particles 25 50 150 300 500] [--runs 2] [--frames 10] [--step 8]
+    python -m benchmarks.importance [--particles 25 50 150 300 500] [--runs 2] [--frames 10] [--step 8]
 
 Sequence: the real CMU walk ``35_02.bvh`` (``../shared/mocap/cmu``; frame 0 is a rest pose and is skipped),
 whose angles drive ``torchpf/assets/human.urdf`` directly, walked in place (the root keeps its first

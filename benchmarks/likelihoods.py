@@ -3,8 +3,8 @@
 Set-up: ``human.urdf`` (93 DOFs, 27 capsules), 3 cameras at 160x120 around a synthetic pose, a depth camera
 giving the point cloud (subsampled to K points), particles spread around the true pose.
 
-    python benchmarks/likelihoods.py                 # N in {100, 1000, 10000}
-    python benchmarks/likelihoods.py --n 1000 --repeat 5 --threads 1 --clock cpu
+    python -m benchmarks.likelihoods                 # N in {100, 1000, 10000}
+    python -m benchmarks.likelihoods --n 1000 --repeat 5 --threads 1 --clock cpu
 
 Goals on the 2-core CPU: point cloud >= 10,000 poses/s at K=1,000; three-camera silhouette >= 5,000 poses/s.
 """
