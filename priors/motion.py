@@ -10,7 +10,7 @@ Every prior is an ``nn.Module`` following the duck-typed dynamics protocol of
 * :class:`DampedSecondOrder` -- Brubaker eq. 13: ``s_{t+1} = s_t + κ (s_t - s_{t-1}) + η``.
 * :class:`AngularRandomWalk` -- Hauberg eq. 3: ``p(θ_t | θ_{t-1}) ∝ N(θ_t | θ_{t-1}, diag σ²) U_Θ(θ_t)``,
   the Gaussian random walk in joint angles truncated to the joint limits, with per-DOF σ defaulting to
-  Fontmarty Table 5 (:func:`table5_sigma`).
+  Fontmarty Table 5 (:func:`priors.table5.table5_sigma`).
 * :class:`ProjectedGaussian` -- Hauberg eq. 6-7: joint *positions* drawn from ``N(F(θ_{t-1}), Σ)`` with
   per-joint blocks ``Σ_l`` and projected onto the pose manifold by :func:`torchpf.ik.project`. Its spatial
   spread is the same for every joint, where the angular walk's grows along each kinematic chain (hands
@@ -26,12 +26,12 @@ Example::
 from __future__ import annotations
 
 import math
-import re
 from collections.abc import Mapping
 
 import torch
 from torch import Tensor, nn
 
+from priors.table5 import TABLE5_FPS, table5_sigma
 from torchpf import ik
 
 _LOG_2PI = math.log(2.0 * math.pi)
@@ -223,53 +223,6 @@ class DampedSecondOrder(_VelocityDynamics):
 
 # ------------------------------------------------------------------------------------- angular random walk
 
-#: Fontmarty Table 5: random-walk std per joint group at a 5 Hz acquisition rate (rad, or m for the base).
-TABLE5 = {
-    "base_translation": 0.07,
-    "base_rotation": 0.05,
-    "shoulder": 0.1,
-    "elbow": 0.3,
-    "hip": 0.1,
-    "knee": 0.1,
-}
-TABLE5_FPS = 5.0
-
-# Joint name -> group, first match wins. Table 5 covers the 22-DOF model; for the CMU joint tree of
-# human.urdf the other joints get a spine/extremity std, and the joints that real CMU data keeps at zero and
-# silhouettes cannot see (clavicles, the pelvis-to-hip links, fingers, thumbs) are held still.
-_GROUPS = [
-    (r"HipJoint$|^(Left|Right)Shoulder$|Finger|Thumb|HandIndex", 0.0),
-    (r"ForeArm$|elbow", TABLE5["elbow"]),
-    (r"UpLeg$|_hip$", TABLE5["hip"]),
-    (r"(Left|Right)Leg$|knee", TABLE5["knee"]),
-    (r"(Left|Right)Arm$|shoulder", TABLE5["shoulder"]),
-    (r"Foot$|Toe|ankle|Hand$|wrist", 0.1),
-    (r"Back|Spine|Neck|Head|torso|neck|head", 0.05),
-]
-
-
-def table5_sigma(skeleton, fps: float = TABLE5_FPS, scale: float = 1.0) -> torch.Tensor:
-    """(D,) per-DOF random-walk std of Fontmarty Table 5 for ``skeleton``, at ``fps``.
-
-    The table is given at 5 Hz; a random walk's std grows with the square root of the time step, so the
-    std per frame at ``fps`` is ``sigma_5Hz * sqrt(5 / fps)``, times ``scale``. The root's prismatic DOFs
-    get the base translation std (m), its revolute DOFs the base rotation std; other DOFs are grouped by
-    the name of the joint they move (``skeleton.dof_joints``).
-    """
-    if not fps > 0:
-        raise ValueError(f"fps must be > 0, got {fps}")
-    names, owner, parents = skeleton.joint_names, skeleton.dof_joints, skeleton.parents
-    sigma = []
-    for d, j in enumerate(owner):
-        if j >= 0 and parents[j] < 0:
-            kind = skeleton.chain.find_joint(skeleton.dof_names[d]).joint_type
-            s = TABLE5["base_translation"] if kind == "prismatic" else TABLE5["base_rotation"]
-        else:
-            joint = names[j] if j >= 0 else ""
-            s = next((v for pattern, v in _GROUPS if re.search(pattern, joint)), 0.05)
-        sigma.append(s)
-    return torch.tensor(sigma, dtype=torch.float64) * math.sqrt(TABLE5_FPS / fps) * scale
-
 
 def _log_ndtr_interval(a: Tensor, b: Tensor) -> Tensor:
     """``log(Φ(b) - Φ(a))`` for ``a <= b``, stable in both tails (and for infinite bounds)."""
@@ -352,12 +305,13 @@ class AngularRandomWalk(nn.Module):
         skeleton,
         sigma=None,
         *,
-        fps: float = 5.0,
+        fps: float = TABLE5_FPS,
         scale: float = 1.0,
         limits: str = "reject",
         max_tries: int = 50,
     ) -> AngularRandomWalk:
-        """Walk on ``skeleton``'s DOFs and limits; ``sigma`` defaults to :func:`table5_sigma` (``fps``)."""
+        """Walk on ``skeleton``'s DOFs and limits; ``sigma`` defaults to
+        :func:`priors.table5.table5_sigma` (``fps``, ``scale``)."""
         if sigma is None:
             sigma = table5_sigma(skeleton, fps, scale)
         return cls(sigma, skeleton.lower, skeleton.upper, limits=limits, max_tries=max_tries)

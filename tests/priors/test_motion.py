@@ -140,7 +140,8 @@ def test_constant_velocity_in_a_particle_filter_carries_velocity():
 import numpy as np  # noqa: E402
 from scipy import stats  # noqa: E402
 
-from priors.motion import AngularRandomWalk, ProjectedGaussian, table5_sigma  # noqa: E402
+from priors.motion import AngularRandomWalk, ProjectedGaussian  # noqa: E402
+from priors.table5 import table5_sigma  # noqa: E402
 from torchpf import Skeleton  # noqa: E402
 from torchpf.assets import path  # noqa: E402
 
@@ -148,19 +149,6 @@ from torchpf.assets import path  # noqa: E402
 @pytest.fixture(scope="module")
 def f22():
     return Skeleton.from_urdf(path("fontmarty22.urdf"))
-
-
-def test_fontmarty_table5_groups(human, f22):
-    s = dict(zip(human.dof_names, table5_sigma(human).tolist(), strict=True))
-    assert s["Hips_Xposition"] == 0.07 and s["Hips_Zrotation"] == 0.05
-    assert s["LeftArm_Xrotation"] == 0.1 and s["RightForeArm_Zrotation"] == 0.3
-    assert s["LeftUpLeg_Yrotation"] == 0.1 and s["RightLeg_Xrotation"] == 0.1
-    assert s["Spine_Xrotation"] == 0.05 and s["LeftHand_Xrotation"] == 0.1  # outside the table
-    f = dict(zip(f22.dof_names, table5_sigma(f22).tolist(), strict=True))
-    assert f["pelvis_tx"] == 0.07 and f["pelvis_rz"] == 0.05 and f["l_elbow_rx"] == 0.3
-    assert f["r_shoulder_ry"] == 0.1 and f["l_hip_rz"] == 0.1 and f["r_knee_rx"] == 0.1
-    # variance of a random walk grows linearly with time: 20 Hz steps have half the 5 Hz std
-    torch.testing.assert_close(table5_sigma(f22, fps=20.0), table5_sigma(f22) / 2)
 
 
 LO, HI, MU, SIG = -0.5, 0.3, 0.1, 0.4
