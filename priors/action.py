@@ -72,6 +72,7 @@ import torch
 from torch import Tensor, nn
 
 from priors.motion import ConstantVelocity
+from torchpf.distributions import wrap_angle
 
 #: ``metadata["format"]`` of an action-model file.
 FORMAT = "torchpf-action-model"
@@ -99,11 +100,6 @@ class ActionModelFormatError(ValueError):
 def is_angular(dof_name: str) -> bool:
     """True for a revolute DOF (radians), False for a prismatic one: names ending in ``position`` (metres)."""
     return not dof_name.lower().endswith("position")
-
-
-def wrap_angle(x: Tensor) -> Tensor:
-    """Wrap radians into ``[-π, π)``, elementwise."""
-    return torch.remainder(x + math.pi, 2.0 * math.pi) - math.pi
 
 
 def _f64(value, name: str, ndim: int) -> Tensor:

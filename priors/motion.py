@@ -33,8 +33,7 @@ from torch import Tensor, nn
 
 from priors.table5 import TABLE5_FPS, table5_sigma
 from torchpf import ik
-
-_LOG_2PI = math.log(2.0 * math.pi)
+from torchpf.distributions import LOG_2PI, diag_normal_log_prob, randn_like
 
 
 def _as_buffer(value, name: str) -> Tensor:
@@ -45,25 +44,6 @@ def _as_buffer(value, name: str) -> Tensor:
     if not torch.isfinite(t).all() or (t < 0).any():
         raise ValueError(f"{name} must be finite and >= 0")
     return t
-
-
-def _randn_like(x: Tensor, generator: torch.Generator | None) -> Tensor:
-    return torch.randn(x.shape, generator=generator, dtype=x.dtype, device=x.device)
-
-
-def _diag_normal_log_prob(x: Tensor, mean: Tensor, sigma: Tensor) -> Tensor:
-    """``log N(x; mean, diag σ²)`` summed over the last dim, ``(..., D) -> (...)``.
-
-    DOFs with ``σ = 0`` are deterministic (a Dirac): they are left out of the sum, i.e. the density is taken
-    with respect to the Lebesgue measure of the DOFs that do move. That keeps frozen DOFs (fingers, a fixed
-    root) from turning every weight into ``-inf``/``+inf``; ``x`` is assumed to equal ``mean`` there.
-    """
-    sigma = sigma.to(x)
-    free = sigma > 0
-    safe = torch.where(free, sigma, torch.ones_like(sigma))
-    z = (x - mean) / safe
-    per_dof = -0.5 * z.square() - torch.log(safe) - 0.5 * _LOG_2PI
-    return torch.where(free, per_dof, torch.zeros_like(per_dof)).sum(-1)
 
 
 class _VelocityDynamics(nn.Module):
@@ -117,7 +97,7 @@ class _VelocityDynamics(nn.Module):
         extras: Mapping[str, Tensor] | None = None,
     ) -> Tensor:
         """Draw ``x_t = predict(x, v) + σ ε``, ``ε ~ N(0, I)``: ``(..., N, D) -> (..., N, D)``."""
-        return self.sample_from_noise(x, _randn_like(x, generator), extras=extras)
+        return self.sample_from_noise(x, randn_like(x, generator), extras=extras)
 
     def sample_from_noise(
         self, x: Tensor, eps: Tensor, *, extras: Mapping[str, Tensor] | None = None
@@ -127,7 +107,7 @@ class _VelocityDynamics(nn.Module):
 
     def log_prob(self, x_new: Tensor, x_old: Tensor, *, extras: Mapping[str, Tensor] | None = None) -> Tensor:
         """``log N(x_new; predict(x_old, v), diag σ²)`` ``(..., N)``; σ = 0 DOFs are left out (Dirac)."""
-        return _diag_normal_log_prob(x_new, self.predict(x_old, extras), self._scale(x_new))
+        return diag_normal_log_prob(x_new, self.predict(x_old, extras), self._scale(x_new))
 
     def update_extras(
         self, x_new: Tensor, x_old: Tensor, extras: Mapping[str, Tensor] | None = None
@@ -341,9 +321,9 @@ class AngularRandomWalk(nn.Module):
     def sample(self, x: Tensor, generator: torch.Generator | None = None) -> Tensor:
         """Draw ``θ_t ~ p(· | θ_{t-1} = x)``: ``(..., N, D) -> (..., N, D)``."""
         if self.limits != "reject":
-            return self.sample_from_noise(x, _randn_like(x, generator))
+            return self.sample_from_noise(x, randn_like(x, generator))
         sig, lo, hi = self._params(x)
-        y = x + sig * _randn_like(x, generator)
+        y = x + sig * randn_like(x, generator)
         moving = sig > 0
         bad = ((y < lo) | (y > hi)) & moving
         for _ in range(self.max_tries):
@@ -355,7 +335,7 @@ class AngularRandomWalk(nn.Module):
             bad = ((y < lo) | (y > hi)) & moving
         if bool(bad.any()):  # rare: far-out parents; finish with the exact inverse-CDF sampler
             exact = _truncnorm_icdf(
-                x, sig.where(moving, torch.ones_like(sig)), lo, hi, _randn_like(x, generator)
+                x, sig.where(moving, torch.ones_like(sig)), lo, hi, randn_like(x, generator)
             )
             y = torch.where(bad, exact, y)
         return y
@@ -381,12 +361,12 @@ class AngularRandomWalk(nn.Module):
         moving = sig > 0
         s = torch.where(moving, sig, torch.ones_like(sig))
         if self.limits == "none":
-            return _diag_normal_log_prob(x_new, x_old, sig)
+            return diag_normal_log_prob(x_new, x_old, sig)
         if self.limits == "reflect":
             per = self._reflect_log_density(x_new, x_old, s, lo, hi)
         else:
             z = (x_new - x_old) / s
-            per = -0.5 * z.square() - torch.log(s) - 0.5 * _LOG_2PI
+            per = -0.5 * z.square() - torch.log(s) - 0.5 * LOG_2PI
             if self.limits == "reject":
                 per = per - _log_ndtr_interval((lo - x_old) / s, (hi - x_old) / s)
             else:  # clamp: probability masses at the bounds
@@ -415,7 +395,7 @@ class AngularRandomWalk(nn.Module):
         valid.append((torch.isfinite(hi) & ~torch.isfinite(lo)).expand_as(x))
         y = torch.stack(images)
         z = (y - mu) / s
-        lp = -0.5 * z.square() - torch.log(s) - 0.5 * _LOG_2PI
+        lp = -0.5 * z.square() - torch.log(s) - 0.5 * LOG_2PI
         lp = torch.where(torch.stack(valid), lp, torch.full_like(lp, -math.inf))
         return torch.logsumexp(lp, 0)
 
@@ -485,7 +465,7 @@ class ProjectedGaussian(nn.Module):
     def sample_joints(self, x: Tensor, generator: torch.Generator | None = None) -> Tensor:
         """Embedding-space draw ``x̂ ~ N(F(x), Σ)`` ``(..., N, J, 3)`` (before projection)."""
         mu = self.mean_joints(x)
-        return self.joints_from_noise(mu, _randn_like(mu, generator))
+        return self.joints_from_noise(mu, randn_like(mu, generator))
 
     def joints_from_noise(self, mu: Tensor, eps: Tensor) -> Tensor:
         """``μ + L_l ε_l`` per joint: ``(..., J, 3), (..., J, 3) -> (..., J, 3)``."""
@@ -513,7 +493,7 @@ class ProjectedGaussian(nn.Module):
         moving = diag > 0  # a zero-variance axis is a Dirac: left out, like the angular priors
         safe = torch.where(moving.all(-1)[:, None, None], L, torch.eye(3, dtype=mu.dtype, device=mu.device))
         z = torch.linalg.solve_triangular(safe, (joints - mu)[..., None], upper=False)[..., 0]
-        per = -0.5 * z.square() - torch.log(torch.diagonal(safe, dim1=-2, dim2=-1)) - 0.5 * _LOG_2PI
+        per = -0.5 * z.square() - torch.log(torch.diagonal(safe, dim1=-2, dim2=-1)) - 0.5 * LOG_2PI
         per = torch.where(moving.all(-1)[:, None], per, torch.zeros_like(per))
         return per.sum((-1, -2))
 
