@@ -8,8 +8,9 @@
   ``DepthGuided`` (Hauberg eq. 13-14) and the ``AngularRejection`` baseline (Hauberg eq. 4).
 * :mod:`priors.action`: the action model Γ = (Ω, ĝ, σ) and ``ActionConstrained`` dynamics (Rius eq. 1-6).
 
-Each prior is an ``nn.Module`` with ``sample(particles, generator)`` and ``log_prob(new, old)`` where it is
-tractable, the duck-typed dynamics protocol of :mod:`torchpf.filters.protocols`.
+Each motion prior is a :class:`torchpf.distributions.Dynamics` (an ``nn.Module``): ``sample(x, generator, *,
+extras)`` and ``log_prob(x_new, x_old, *, extras)`` where it is tractable, with no-op extras hooks unless it
+keeps per-particle state.
 """
 
 from importlib import import_module

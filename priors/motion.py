@@ -1,9 +1,11 @@
 """Motion priors ``p(θ_t | θ_{t-1})`` for articulated tracking: the dynamics a particle filter samples from.
 
-Every prior is an ``nn.Module`` following the duck-typed dynamics protocol of
-:mod:`torchpf.filters.protocols`: ``sample(x, generator)`` draws ``x_t`` for every particle and
-``log_prob(x_new, x_old)`` returns ``log p(x_new | x_old)`` ``(..., N)`` where it is tractable. Particles are
-``(..., N, D)`` pose vectors in ``Skeleton.dof_names`` order (radians / metres).
+Every prior is a :class:`torchpf.distributions.Dynamics` (an ``nn.Module``) with the one signature
+``sample(x, generator=None, *, extras=None)`` that draws ``x_t`` for every particle,
+``log_prob(x_new, x_old, *, extras=None)`` -> ``log p(x_new | x_old)`` ``(..., N)`` where it is tractable,
+``sample_from_noise(x, eps, *, extras=None)`` for QRS sampling, and the extras hooks ``init_extras`` /
+``update_extras`` (no-ops for the priors that keep no per-particle state). Particles are ``(..., N, D)`` pose
+vectors in ``Skeleton.dof_names`` order (radians / metres).
 
 * :class:`ConstantVelocity` -- Rius eq. 3: ``φ_t = φ_{t-1} + V + N(0, σ_φ²)`` with a per-particle
   velocity ``V_t = α V_{t-1} + (1-α)(φ_{t-1} - φ_{t-2})`` carried as the extra ``"velocity"``.
@@ -29,11 +31,11 @@ import math
 from collections.abc import Mapping
 
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
 from priors.table5 import TABLE5_FPS, table5_sigma
 from torchpf import ik
-from torchpf.distributions import LOG_2PI, diag_normal_log_prob, randn_like
+from torchpf.distributions import LOG_2PI, Dynamics, diag_normal_log_prob, randn_like
 
 
 def _as_buffer(value, name: str) -> Tensor:
@@ -46,10 +48,8 @@ def _as_buffer(value, name: str) -> Tensor:
     return t
 
 
-class _VelocityDynamics(nn.Module):
+class _VelocityDynamics(Dynamics):
     """Gaussian diffusion around ``x + dt * gain * v`` with a per-particle velocity extra ``"velocity"``."""
-
-    noise_dim = None  # standard-normal noise has the state's dimension D (protocol default)
 
     def __init__(self, sigma, *, dt: float = 1.0):
         super().__init__()
@@ -227,7 +227,7 @@ def _truncnorm_icdf(mu: Tensor, sigma: Tensor, lo: Tensor, hi: Tensor, eps: Tens
     return mu + sigma * torch.where(flip, -z, z)
 
 
-class AngularRandomWalk(nn.Module):
+class AngularRandomWalk(Dynamics):
     """Gaussian random walk in joint angles, restricted to the joint limits (Hauberg eq. 3).
 
     ``p(θ_t | θ_{t-1}) ∝ N(θ_t | θ_{t-1}, diag σ²) U_Θ(θ_t)`` with ``Θ = [lower, upper]`` a box. How the
@@ -318,8 +318,8 @@ class AngularRandomWalk(nn.Module):
         out = torch.where(only_lo, lo + (y - lo).abs(), out)
         return torch.where(only_hi, hi - (hi - y).abs(), out)
 
-    def sample(self, x: Tensor, generator: torch.Generator | None = None) -> Tensor:
-        """Draw ``θ_t ~ p(· | θ_{t-1} = x)``: ``(..., N, D) -> (..., N, D)``."""
+    def sample(self, x: Tensor, generator: torch.Generator | None = None, *, extras=None) -> Tensor:
+        """Draw ``θ_t ~ p(· | θ_{t-1} = x)``: ``(..., N, D) -> (..., N, D)`` (keeps no extras)."""
         if self.limits != "reject":
             return self.sample_from_noise(x, randn_like(x, generator))
         sig, lo, hi = self._params(x)
@@ -340,7 +340,7 @@ class AngularRandomWalk(nn.Module):
             y = torch.where(bad, exact, y)
         return y
 
-    def sample_from_noise(self, x: Tensor, eps: Tensor) -> Tensor:
+    def sample_from_noise(self, x: Tensor, eps: Tensor, *, extras=None) -> Tensor:
         """Deterministic map of standard-normal ``eps (..., N, D)`` to a draw (QRS sampling)."""
         sig, lo, hi = self._params(x)
         eps = eps.to(x)
@@ -355,7 +355,7 @@ class AngularRandomWalk(nn.Module):
             return torch.maximum(torch.minimum(y, hi), lo)
         return y
 
-    def log_prob(self, x_new: Tensor, x_old: Tensor) -> Tensor:
+    def log_prob(self, x_new: Tensor, x_old: Tensor, *, extras=None) -> Tensor:
         """``log p(x_new | x_old)`` ``(..., N)`` under the chosen limit handling (class docstring)."""
         sig, lo, hi = self._params(x_new)
         moving = sig > 0
@@ -419,7 +419,7 @@ def _joint_scale(joint_sigma, J: int) -> Tensor:
     raise ValueError(f"joint_sigma must be a scalar, (J,) stds or (J, 3, 3) covariances with J={J}")
 
 
-class ProjectedGaussian(nn.Module):
+class ProjectedGaussian(Dynamics):
     """Projected prior (Hauberg eq. 6-7): a Gaussian on joint positions, projected onto the pose manifold.
 
     ``x̂_t ~ N(F(θ_{t-1}), Σ)`` with ``Σ = blockdiag(Σ_1 .. Σ_J)`` (one 3x3 block per joint), then
@@ -476,11 +476,11 @@ class ProjectedGaussian(nn.Module):
         """Eq. 7: joint positions ``(..., N, J, 3)`` -> poses ``(..., N, D)`` by IK from ``x_old``."""
         return ik.project(self.skeleton, joints, x_old, **self.ik_options)
 
-    def sample(self, x: Tensor, generator: torch.Generator | None = None) -> Tensor:
+    def sample(self, x: Tensor, generator: torch.Generator | None = None, *, extras=None) -> Tensor:
         """Draw ``θ_t``: ``(..., N, D) -> (..., N, D)`` (within the joint limits)."""
         return self.project(self.sample_joints(x, generator), x)
 
-    def sample_from_noise(self, x: Tensor, eps: Tensor) -> Tensor:
+    def sample_from_noise(self, x: Tensor, eps: Tensor, *, extras=None) -> Tensor:
         """Deterministic map of standard-normal ``eps (..., N, 3J)`` to a draw (QRS sampling)."""
         mu = self.mean_joints(x)
         return self.project(self.joints_from_noise(mu, eps.reshape(mu.shape)), x)
@@ -497,7 +497,7 @@ class ProjectedGaussian(nn.Module):
         per = torch.where(moving.all(-1)[:, None], per, torch.zeros_like(per))
         return per.sum((-1, -2))
 
-    def log_prob(self, x_new: Tensor, x_old: Tensor) -> Tensor:
+    def log_prob(self, x_new: Tensor, x_old: Tensor, *, extras=None) -> Tensor:
         """Embedding-space surrogate ``log N(F(x_new); F(x_old), Σ)``, ``(..., N)`` (class docstring)."""
         return self.log_prob_joints(self.skeleton.fk(x_new), x_old)
 

@@ -284,3 +284,26 @@ def test_priors_follow_the_particles_device():
     assert z.device.type == "cuda"
     p = ProjectedGaussian(f22, 0.03).sample(x, g)
     assert p.device.type == "cuda" and f22.within_limits(p).all()
+
+
+def test_every_prior_is_a_dynamics_with_one_signature(human):
+    from priors.motion import ConstantVelocity, DampedSecondOrder
+    from torchpf.distributions import Dynamics
+
+    x = human.clamp(torch.zeros(2, 3, len(human.dof_names), dtype=torch.float64))
+    priors = (
+        AngularRandomWalk.from_skeleton(human),
+        AngularRandomWalk(0.1, limits="none"),
+        ConstantVelocity(0.1),
+        DampedSecondOrder(0.1),
+        ProjectedGaussian(human, 0.03),
+    )
+    for prior in priors:
+        assert isinstance(prior, Dynamics)
+        g = torch.Generator().manual_seed(0)
+        extras = prior.init_extras(x)
+        y = prior.sample(x, g, extras=extras)
+        assert y.shape == x.shape and prior.log_prob(y, x, extras=extras).shape == (2, 3)
+        eps = torch.randn(2, 3, prior.noise_size(x.shape[-1]), generator=g, dtype=x.dtype)
+        assert prior.sample_from_noise(x, eps, extras=extras).shape == x.shape
+        assert set(prior.update_extras(y, x, extras)) == set(extras)
