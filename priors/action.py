@@ -72,7 +72,7 @@ import torch
 from torch import Tensor, nn
 
 from priors.motion import ConstantVelocity
-from torchpf.distributions import wrap_angle
+from torchpf.distributions import Dynamics, as_dynamics, flatten_batch, unflatten_batch, wrap_angle
 
 #: ``metadata["format"]`` of an action-model file.
 FORMAT = "torchpf-action-model"
@@ -534,7 +534,7 @@ def _savez_atomic(path: str | os.PathLike, **arrays) -> None:
 
 
 # ================================================================================================ dynamics
-class ActionConstrained(nn.Module):
+class ActionConstrained(Dynamics):
     """Action-constrained first-order dynamics (Rius eq. 3-6), a stateful dynamics for the filters.
 
     Prediction is a two-step process per particle (Rius §3.1):
@@ -555,14 +555,19 @@ class ActionConstrained(nn.Module):
     ``sample_from_noise`` is not provided: rejection sampling uses a random number of draws, so QRS sampling
     does not apply.
 
-    Diagnostics of the last :meth:`sample` call are in :attr:`stats` (tensors, no host sync beyond the
-    retry loop's "anything left?" check): ``accepted`` (fraction of particles finally accepted, ``(...)``),
-    ``accepted_first`` (fraction accepted at the first draw, ``(...)``) and ``tries`` (mean number of draws
-    per particle, ``(...)``). :meth:`sample_with_stats` returns them instead.
+    Acceptance is reported functionally, never kept on the module:
+
+    * per particle, riding with the particle state: the extra ``"accepted"`` ``(..., N)`` bool, set by
+      :meth:`init_extras` and :meth:`update_extras` once a frame's particles are final: whether eq. 6 can
+      accept the particle (``P(accept | φ_t) > 0``, i.e. it lies in the support of eq. 5). The accepted
+      fraction of a filter's frame is ``state.extras["accepted"].float().mean(-1)``;
+    * per draw: :meth:`sample_with_stats` returns the sampler's own record, ``accepted`` (finally accepted),
+      ``accepted_first`` (accepted at the first draw), both ``(..., N)`` bool, and ``tries`` ``(..., N)``.
 
     Args:
         model: the :class:`ActionModel` (its ``dof_names`` are the particle layout).
-        dynamics: eq. 3 dynamics with ``sample(x, generator, extras=)``; default built from the model.
+        dynamics: eq. 3 dynamics (a :class:`torchpf.distributions.Dynamics`, or a duck-typed object adapted
+            once by :func:`torchpf.distributions.as_dynamics`); default built from the model.
         max_tries: at most this many draws per particle and frame (>= 1).
         alpha: overrides the model's α for the default dynamics (Rius tracked with 0.5).
         sigma_scale: multiplies the model's σ_φ for the default dynamics.
@@ -571,7 +576,7 @@ class ActionConstrained(nn.Module):
 
         dyn = ActionConstrained(ActionModel.load("walk.npz", dof_names=skel.dof_names), alpha=0.5)
         pf = ParticleFilter(dyn, likelihood, n_particles=2000)
-        state = pf.step(pf.init(x0), obs); dyn.stats["accepted_first"]
+        state = pf.step(pf.init(x0), obs); state.extras["accepted"].float().mean(-1)
     """
 
     def __init__(
@@ -592,24 +597,20 @@ class ActionConstrained(nn.Module):
         elif alpha is not None or sigma_scale != 1.0:
             raise ValueError("alpha and sigma_scale configure the default dynamics; not with dynamics=")
         self.model = model
-        self.dynamics = dynamics
+        self.dynamics = as_dynamics(dynamics)
         self.max_tries = int(max_tries)
-        self.stats: dict[str, Tensor] = {}
 
-    # StatefulDynamics protocol -------------------------------------------------------------------------
-    def init_extras(self, x0: Tensor) -> Mapping[str, Tensor]:
-        """The wrapped dynamics' initial extras (zero velocity), ``{"velocity": (..., N, D)}``."""
-        if hasattr(self.dynamics, "init_extras"):
-            return self.dynamics.init_extras(x0)
-        return {}
+    def _accepted(self, x: Tensor) -> Tensor:
+        """``(..., N)`` bool: eq. 6 can accept ``x`` (``P(accept | x) > 0``)."""
+        return self.model.accept_probability(x) > 0
 
-    def update_extras(
-        self, x_new: Tensor, x_old: Tensor, extras: Mapping[str, Tensor]
-    ) -> Mapping[str, Tensor]:
-        """The wrapped dynamics' update (Rius eq. 3's velocity smoothing)."""
-        if hasattr(self.dynamics, "update_extras"):
-            return self.dynamics.update_extras(x_new, x_old, extras)
-        return dict(extras)
+    def init_extras(self, x0: Tensor) -> dict[str, Tensor]:
+        """The wrapped dynamics' initial extras (zero velocity ``(..., N, D)``) and ``"accepted"``."""
+        return {**self.dynamics.init_extras(x0), "accepted": self._accepted(x0)}
+
+    def update_extras(self, x_new: Tensor, x_old: Tensor, extras: Mapping[str, Tensor]) -> dict[str, Tensor]:
+        """The wrapped dynamics' update (Rius eq. 3's velocity smoothing) and ``"accepted"`` of ``x_new``."""
+        return {**self.dynamics.update_extras(x_new, x_old, extras), "accepted": self._accepted(x_new)}
 
     def sample(
         self,
@@ -618,9 +619,8 @@ class ActionConstrained(nn.Module):
         *,
         extras: Mapping[str, Tensor] | None = None,
     ) -> Tensor:
-        """Accepted predictions ``(..., N, D) -> (..., N, D)``; diagnostics go to :attr:`stats`."""
-        out, self.stats = self.sample_with_stats(x, generator, extras=extras)
-        return out
+        """Accepted predictions ``(..., N, D) -> (..., N, D)`` (eq. 3 redrawn until eq. 6 accepts)."""
+        return self.sample_with_stats(x, generator, extras=extras)[0]
 
     def sample_with_stats(
         self,
@@ -629,12 +629,15 @@ class ActionConstrained(nn.Module):
         *,
         extras: Mapping[str, Tensor] | None = None,
     ) -> tuple[Tensor, dict[str, Tensor]]:
-        """Like :meth:`sample`, returning ``(x_new (..., N, D), stats)`` (see the class docstring)."""
-        extras = dict(extras or {})
-        batch = x.shape[:-1]
-        flat_x = x.reshape(-1, x.shape[-1])  # (M, D): particles are independent, so batch dims flatten
-        flat_extras = {k: v.reshape(-1, *v.shape[len(batch) :]) for k, v in extras.items()}
-        out = self._draw(flat_x, flat_extras, generator)
+        """Like :meth:`sample`, also returning the sampler's record per particle: ``(x_new (..., N, D),
+        {"accepted": (..., N) bool, "accepted_first": (..., N) bool, "tries": (..., N)})``.
+
+        No host sync beyond the retry loop's "anything left?" check.
+        """
+        # particles are independent, so all batch dims flatten to one (M, D)
+        flat_x, batch = flatten_batch(x, 1)
+        flat_extras = {k: flatten_batch(v, v.ndim - len(batch))[0] for k, v in (extras or {}).items()}
+        out = self.dynamics.sample(flat_x, generator, extras=flat_extras)
         ok = self.model.accepts(out, generator)
         first = ok.clone()
         tries = torch.ones_like(ok, dtype=x.dtype)
@@ -642,29 +645,22 @@ class ActionConstrained(nn.Module):
             pending = (~ok).nonzero().squeeze(-1)  # one host sync per retry round, not per particle
             if pending.numel() == 0:
                 break
-            sub = self._draw(flat_x[pending], {k: v[pending] for k, v in flat_extras.items()}, generator)
+            sub_extras = {k: v[pending] for k, v in flat_extras.items()}
+            sub = self.dynamics.sample(flat_x[pending], generator, extras=sub_extras)
             acc = self.model.accepts(sub, generator)
             out = out.index_copy(0, pending, sub)
             ok = ok.index_copy(0, pending, acc)
             tries = tries.index_add(0, pending, torch.ones_like(sub[:, 0]))
         stats = {
-            "accepted": ok.reshape(batch).to(x.dtype).mean(-1),
-            "accepted_first": first.reshape(batch).to(x.dtype).mean(-1),
-            "tries": tries.reshape(batch).mean(-1),
+            "accepted": unflatten_batch(ok, batch),
+            "accepted_first": unflatten_batch(first, batch),
+            "tries": unflatten_batch(tries, batch),
         }
-        return out.reshape(x.shape), stats
-
-    def _draw(self, x: Tensor, extras: Mapping[str, Tensor], generator: torch.Generator | None) -> Tensor:
-        if hasattr(self.dynamics, "update_extras"):
-            return self.dynamics.sample(x, generator, extras=extras)
-        return self.dynamics.sample(x, generator)
+        return unflatten_batch(out, batch), stats
 
     def log_prob(self, x_new: Tensor, x_old: Tensor, *, extras: Mapping[str, Tensor] | None = None) -> Tensor:
         """``log p(x_new | x_old) + log P(accept | x_new)`` ``(..., N)``, unnormalised in x_old (eq. 5)."""
-        if hasattr(self.dynamics, "update_extras"):
-            base = self.dynamics.log_prob(x_new, x_old, extras=extras)
-        else:
-            base = self.dynamics.log_prob(x_new, x_old)
+        base = self.dynamics.log_prob(x_new, x_old, extras=extras)
         return base + torch.log(self.model.accept_probability(x_new).to(base))
 
     def extra_repr(self) -> str:

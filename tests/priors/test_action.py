@@ -247,14 +247,21 @@ def test_action_constrained_follows_the_stateful_protocol_and_reports_acceptance
     assert isinstance(dyn.dynamics, ConstantVelocity) and dyn.dynamics.alpha == 0.5
     x = near_mean_poses(model, 400, 0.03).reshape(2, 200, len(NAMES))
     extras = dyn.init_extras(x)
+    assert extras["accepted"].shape == (2, 200) and extras["accepted"].dtype == torch.bool
     out, stats = dyn.sample_with_stats(x, torch.Generator().manual_seed(0), extras=extras)
     assert out.shape == x.shape and torch.isfinite(out).all()
-    assert set(stats) == {"accepted", "accepted_first", "tries"} and stats["accepted"].shape == (2,)
-    assert (stats["accepted"] >= stats["accepted_first"]).all() and (stats["accepted"] > 0.95).all()
-    assert (stats["tries"] >= 1).all()
+    assert set(stats) == {"accepted", "accepted_first", "tries"}
+    assert all(v.shape == (2, 200) for v in stats.values()) and stats["accepted"].dtype == torch.bool
+    accepted, first = stats["accepted"].float().mean(-1), stats["accepted_first"].float().mean(-1)
+    assert (accepted >= first).all() and (accepted > 0.95).all()
+    assert (stats["tries"] >= 1).all() and (stats["tries"][stats["accepted_first"]] == 1).all()
     # accepted particles are ones eq. 6 can accept; the prediction moved them by ~sigma_phi only
-    assert (model.accept_probability(out) > 0).float().mean() >= stats["accepted"].min() - 1e-9
+    assert (model.accept_probability(out)[stats["accepted"]] > 0).all()
     assert (out - x).abs().max() < 0.2
+    # the per-particle extra of the final particles says the same
+    new = dyn.update_extras(out, x, extras)
+    assert set(new) == {"velocity", "accepted"} and (new["accepted"] | ~stats["accepted"]).all()
+    assert not hasattr(dyn, "stats")  # nothing of a call is kept on the module
 
 
 def test_action_constrained_retries_are_bounded():
@@ -262,7 +269,7 @@ def test_action_constrained_retries_are_bounded():
     dyn = ActionConstrained(model, max_tries=3)
     x = near_mean_poses(model, 50, 0.3)
     out, stats = dyn.sample_with_stats(x, torch.Generator().manual_seed(0), extras=dyn.init_extras(x))
-    assert stats["accepted"] == 0 and stats["tries"] == 3
+    assert not stats["accepted"].any() and (stats["tries"] == 3).all()
     assert torch.isfinite(out).all()  # the last draws are kept
 
 
@@ -290,5 +297,7 @@ def test_action_constrained_runs_in_a_particle_filter():
     assert state.extras["velocity"].shape == (300, len(NAMES))
     for _ in range(4):
         state = pf.step(state, truth, g)
-        assert 0 < float(dyn.stats["accepted_first"]) <= float(dyn.stats["accepted"]) <= 1
+        accepted = state.extras["accepted"]  # rides with the particles (gathered at resampling)
+        assert accepted.shape == (300,) and accepted.dtype == torch.bool
+        assert 0.5 < float(accepted.float().mean()) <= 1
     assert torch.isfinite(state.mean()).all() and state.ess() > 1
