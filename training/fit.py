@@ -69,7 +69,7 @@ from scipy.signal import lfilter
 from sklearn.decomposition import PCA
 from tqdm.auto import tqdm
 
-from priors.action import ActionModel, is_angular
+from priors.action import ActionModel, guess_revolute
 from training.mocap import Motion
 
 #: Default ``exclude`` patterns (case-insensitive regular expressions searched in DOF names): the hand,
@@ -402,12 +402,17 @@ class ActionModelFitter:
         return out
 
     # ------------------------------------------------------------------------------------------ fit
-    def fit(self, performances: Sequence[Motion]) -> ActionModelFitter:
-        """Learn the model from ``performances`` (``R`` Motions with the same DOFs); returns ``self``."""
+    def fit(self, performances: Sequence[Motion], *, skeleton=None) -> ActionModelFitter:
+        """Learn the model from ``performances`` (``R`` Motions with the same DOFs); returns ``self``.
+
+        ``skeleton`` (the performances' :class:`torchpf.Skeleton`) says which DOFs are angles
+        (``skeleton.dof_revolute``, stored in the model); without one, DOF names decide
+        (:func:`priors.action.guess_revolute`).
+        """
         self._check_config()
         motions = self._check_performances(performances)
         names = list(motions[0].dof_names)
-        angular_full = np.array([is_angular(n) for n in names])
+        angular_full = self._revolute(names, skeleton)
         fps = float(self.fps) if self.fps is not None else float(np.median([m.fps for m in motions]))
 
         # 1. unwrap along time, then resample (interpolating wrapped angles across ±π would be wrong)
@@ -529,7 +534,7 @@ class ActionModelFitter:
             action=self.action,
             cyclic=bool(cyclic),
             n_sigma=self.n_sigma,
-            angular=angular.tolist(),
+            revolute=angular_full,
             explained_variance=pca.explained_variance_,
             explained_variance_ratio=pca.explained_variance_ratio_,
             training={
@@ -550,11 +555,25 @@ class ActionModelFitter:
             params = {**self.get_params(), "fps": fps, "cyclic": bool(cyclic), "validate": False}
             rates = []
             for r in tqdm(range(len(motions)), desc="validating", disable=not self.progress):
-                sub = ActionModelFitter(**params).fit(motions[:r] + motions[r + 1 :]).model_
+                sub = (
+                    ActionModelFitter(**params).fit(motions[:r] + motions[r + 1 :], skeleton=skeleton).model_
+                )
                 frames = torch.from_numpy(full[r])  # unwrapped and resampled: the model wraps it itself
                 rates.append(float(sub.accept_probability(frames).mean()))
             self.validation_acceptance_ = np.array(rates)
         return self
+
+    @staticmethod
+    def _revolute(names: Sequence[str], skeleton) -> np.ndarray:
+        """``(D_full,)`` bool: which of the performances' DOFs ``names`` are angles."""
+        if skeleton is None:
+            return np.array(guess_revolute(names))
+        missing = sorted(set(names) - set(skeleton.dof_names))
+        if missing:
+            raise ValueError(f"the performances have DOFs the skeleton lacks: {missing[:5]}")
+        revolute = skeleton.dof_revolute.tolist()
+        index = {n: i for i, n in enumerate(skeleton.dof_names)}
+        return np.array([revolute[index[n]] for n in names])
 
     def _align(self, z: np.ndarray, mean: np.ndarray, cyclic: bool, label: str) -> tuple[np.ndarray, float]:
         try:
@@ -610,7 +629,7 @@ class ActionModelFitter:
             raise RuntimeError("ActionModelFitter: call fit() first")
         m = performance if performance.dof_names == self.dof_names_ else performance.select(self.dof_names_)
         a = m.angles.detach().to("cpu", torch.float64).numpy().copy()
-        ang = np.array([is_angular(n) for n in self.dof_names_])
+        ang = self.model_.revolute.numpy()
         a[:, ang] = np.unwrap(a[:, ang], axis=0)
         a = resample(a, m.fps, self.fps_)
         z = self.model_.project(torch.from_numpy(a)).numpy()
@@ -638,15 +657,19 @@ class ActionModelFitter:
         }
 
 
-def fit_action_model(motions: Sequence[Motion], n_components: int | float = 13, **options) -> ActionModel:
+def fit_action_model(
+    motions: Sequence[Motion], n_components: int | float = 13, *, skeleton=None, **options
+) -> ActionModel:
     """Fit an action model to performances of one action: ``ActionModelFitter(...).fit(motions).model_``.
 
     Args:
         motions: ``R`` performances (Motions with the same DOF names; any lengths and frame rates).
         n_components: aSpace dimension ``D`` (Rius: 13) or the fraction of variance to keep.
+        skeleton: the performances' skeleton: its ``dof_revolute`` says which DOFs are angles (default:
+            their names, :func:`priors.action.guess_revolute`).
         **options: any other :class:`ActionModelFitter` option (``action``, ``fps``, ``cyclic``, ...).
 
     Returns:
         the :class:`~priors.action.ActionModel` (save it with ``.save(path)``).
     """
-    return ActionModelFitter(n_components=n_components, **options).fit(motions).model_
+    return ActionModelFitter(n_components=n_components, **options).fit(motions, skeleton=skeleton).model_

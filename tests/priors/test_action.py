@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import zipfile
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -301,3 +302,57 @@ def test_action_constrained_runs_in_a_particle_filter():
         assert accepted.shape == (300,) and accepted.dtype == torch.bool
         assert 0.5 < float(accepted.float().mean()) <= 1
     assert torch.isfinite(state.mean()).all() and state.ess() > 1
+
+
+# ----------------------------------------------------------------------------------- revolute DOFs
+
+
+def test_the_revolute_mask_decides_what_is_wrapped_and_is_saved(tmp_path):
+    # "Knee_Xrotation" made a length: the name rule would call it an angle, the mask says otherwise
+    revolute = [False, True, False, True, True]
+    model = tiny_model(revolute=revolute)
+    assert model.angular.tolist() == [False, True, True] and model.revolute.tolist() == revolute
+    theta = near_mean_poses(model, 5, 0.0)
+    turned = theta.clone()
+    turned[:, 2] += 2 * math.pi
+    assert not torch.allclose(model.project(turned), model.project(theta))  # a length is never wrapped
+    model.save(tmp_path / "m.npz")
+    back = ActionModel.load(tmp_path / "m.npz")
+    assert back.revolute.tolist() == revolute
+    reordered = ActionModel.load(tmp_path / "m.npz", dof_names=NAMES[::-1])
+    assert reordered.revolute.tolist() == revolute[::-1]
+    with np.load(tmp_path / "m.npz") as npz:
+        assert npz["revolute"].dtype == bool
+        assert __import__("json").loads(str(npz["metadata"]))["version"] == 2
+
+
+def test_version_1_files_load_with_the_name_rule_and_a_warning(tmp_path):
+    model = tiny_model()
+    model.save(tmp_path / "m.npz")
+    with np.load(tmp_path / "m.npz") as npz:
+        arrays = {k: npz[k] for k in npz.files if k != "revolute"}
+    meta = __import__("json").loads(str(arrays["metadata"]))
+    meta.update(version=1, angular=[True, True, True])  # what version 1 wrote
+    arrays["metadata"] = np.array(__import__("json").dumps(meta))
+    np.savez(tmp_path / "old.npz", **arrays)
+    with pytest.warns(UserWarning, match=r"old\.npz: action-model format version 1 stores no revolute mask"):
+        old = ActionModel.load(tmp_path / "old.npz")
+    assert old.revolute.tolist() == [False, True, True, True, True]
+    theta = near_mean_poses(model, 10, 0.1)
+    torch.testing.assert_close(old.project(theta), model.project(theta))
+    with np.load(tmp_path / "old.npz") as npz:  # a version-2 file without the mask is malformed
+        arrays = {k: npz[k] for k in npz.files}
+    arrays["metadata"] = np.array(__import__("json").dumps({**meta, "version": 2}))
+    np.savez(tmp_path / "bad.npz", **arrays)
+    with pytest.raises(ActionModelFormatError, match=r"missing entries \['revolute'\]"):
+        ActionModel.load(tmp_path / "bad.npz")
+
+
+def test_action_constrained_with_a_skeleton_checks_its_joint_types():
+    model = tiny_model()
+    skel = SimpleNamespace(dof_names=NAMES[::-1], dof_revolute=torch.tensor([True, True, True, True, False]))
+    dyn = ActionConstrained(model, skeleton=skel)
+    assert dyn.model.dof_names == NAMES[::-1]  # in the skeleton's pose layout
+    wrong = SimpleNamespace(dof_names=NAMES, dof_revolute=torch.tensor([False, True, False, True, True]))
+    with pytest.raises(ValueError, match=r"Knee_Xrotation.*refit"):
+        ActionConstrained(model, skeleton=wrong)

@@ -1,6 +1,5 @@
 """Motion priors by name: entry points, factories."""
 
-
 import pytest
 import torch
 

@@ -228,6 +228,18 @@ def test_fit_action_model_returns_a_model_with_the_contract_api(tmp_path):
     assert math.isclose(back.alpha, model.alpha) and back.action == "walk"
 
 
+def test_fit_with_a_skeleton_takes_its_joint_types():
+    train = [generate("walk", 60, 30.0, seed=k) for k in range(2)]
+    skel = Skeleton.from_urdf(asset_path("human.urdf"))
+    model = fit_action_model(train, n_components=4, action="walk", skeleton=skel)
+    index = [skel.dof_names.index(n) for n in model.dof_names]
+    assert model.revolute.tolist() == skel.dof_revolute[index].tolist()
+    by_name = fit_action_model(train, n_components=4, action="walk")  # the name rule agrees on human.urdf
+    torch.testing.assert_close(model.mean_performance, by_name.mean_performance)
+    with pytest.raises(ValueError, match="DOFs the skeleton lacks"):
+        fit_action_model(train, n_components=4, skeleton=Skeleton.from_urdf(asset_path("fontmarty22.urdf")))
+
+
 def test_leave_one_out_validation_exposes_too_many_components():
     """With 4 performers, D=13 fits the performers rather than the action: left-out walks are rejected."""
     walks = [generate("walk", 90, 30.0, seed=k) for k in range(4)]
