@@ -45,7 +45,8 @@ from torchpf.camera import camera_ring
 from torchpf.filters import ParticleFilter
 from torchpf.likelihoods import OverlapLikelihood, SilhouetteLikelihood
 from torchpf.synth import synthesize
-from training.fit import ActionModelFitter, resample
+from training.align import resample
+from training.fit import ActionModelFitter
 from training.mocap import CMU_SCALE, bvh_motion, load_bvh, read_bvh
 
 CMU = Path(__file__).resolve().parents[1].parent / "shared" / "mocap" / "cmu"
