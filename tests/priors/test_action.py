@@ -356,3 +356,21 @@ def test_action_constrained_with_a_skeleton_checks_its_joint_types():
     wrong = SimpleNamespace(dof_names=NAMES, dof_revolute=torch.tensor([False, True, False, True, True]))
     with pytest.raises(ValueError, match=r"Knee_Xrotation.*refit"):
         ActionConstrained(model, skeleton=wrong)
+
+
+def test_action_constrained_adapts_a_duck_typed_dynamics_once():
+    class Walk:  # plain object: sample(x, generator) / log_prob(new, old), no extras
+        def sample(self, x, generator=None):
+            return x + 0.01 * torch.randn(x.shape, generator=generator, dtype=x.dtype)
+
+        def log_prob(self, x_new, x_old):
+            return torch.zeros(x_new.shape[:-1], dtype=x_new.dtype)
+
+    model = tiny_model()
+    dyn = ActionConstrained(model, Walk())
+    x = near_mean_poses(model, 20, 0.02)
+    extras = dyn.init_extras(x)
+    assert set(extras) == {"accepted"}
+    out = dyn.sample(x, torch.Generator().manual_seed(0), extras=extras)
+    assert out.shape == x.shape
+    torch.testing.assert_close(dyn.log_prob(out, x, extras=extras), model.accept_probability(out).log())

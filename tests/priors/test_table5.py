@@ -11,14 +11,7 @@ from torchpf import Skeleton
 from torchpf.assets import path
 
 # Fontmarty et al. Table 5 (§3.3.2), at 5 Hz: the only numbers the paper gives.
-PAPER = {
-    "base_translation": 0.07,
-    "base_rotation": 0.05,
-    "shoulder": 0.1,
-    "elbow": 0.3,
-    "hip": 0.1,
-    "knee": 0.1,
-}
+PAPER = dict(base_translation=0.07, base_rotation=0.05, shoulder=0.1, elbow=0.3, hip=0.1, knee=0.1)
 
 # Group of every joint's DOFs, pinned: these are the stds the random_walk prior (and every benchmark number
 # made with it) used before the table got its own module.
