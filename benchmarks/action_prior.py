@@ -45,7 +45,8 @@ from torchpf.camera import camera_ring
 from torchpf.filters import ParticleFilter
 from torchpf.likelihoods import OverlapLikelihood, SilhouetteLikelihood
 from torchpf.synth import synthesize
-from training.fit import ActionModelFitter, resample
+from training.align import resample
+from training.fit import ActionModelFitter
 from training.mocap import CMU_SCALE, bvh_motion, load_bvh, read_bvh
 
 CMU = Path(__file__).resolve().parents[1].parent / "shared" / "mocap" / "cmu"
@@ -59,7 +60,7 @@ def _posture_rmse_deg(estimates: torch.Tensor, truth: torch.Tensor, index: torch
 
 
 def _track(pf, dyn, observations, x0, v0, alpha, velocity, generator):
-    """Run the filter frame by frame; returns estimates (T, D) and the mean first-draw acceptance.
+    """Run the filter frame by frame; returns estimates (T, D) and the mean share of particles eq. 6 accepts.
 
     ``velocity="estimate"`` is Rius' eq. 3: one velocity ``V_t = α V_{t-1} + (1-α)(φ̂_t - φ̂_{t-1})`` from the
     MMSE estimates, given to every particle; ``"particle"`` keeps each particle's own smoothed velocity.
@@ -69,11 +70,11 @@ def _track(pf, dyn, observations, x0, v0, alpha, velocity, generator):
     for obs in observations[1:]:
         state = pf.step(state, obs, generator)
         estimates.append(state.mean())
+        if isinstance(dyn, ActionConstrained):
+            accepted.append(float(state.extras["accepted"].float().mean()))
         if velocity == "estimate":
             v = alpha * v + (1 - alpha) * (estimates[-1] - estimates[-2])
             state = state.replace(extras={"velocity": v.expand_as(state.particles).clone()})
-        if isinstance(dyn, ActionConstrained):
-            accepted.append(float(dyn.stats["accepted_first"]))
     return torch.stack(estimates), (float(np.mean(accepted)) if accepted else float("nan"))
 
 
@@ -188,8 +189,8 @@ def main(argv: list[str] | None = None) -> None:
         rows.append((n, e0, c0, e1, c1))
         print(f"{n:>6} | {e0:>19.2f} {c0:>9.2f} {s0:>7.2f} | {e1:>24.2f} {c1:>9.2f} {s1:>7.2f} {a1:>8.2f}")
     print(
-        "RMSE: posture angles (66 DOFs, degrees); joints: mean 3D joint error; accepted: share of first "
-        "draws that eq. 6 accepts"
+        "RMSE: posture angles (66 DOFs, degrees); joints: mean 3D joint error; accepted: share of the "
+        "frame's particles that eq. 6 accepts"
     )
     if len(rows) > 1:
         best_plain = rows[-1][1]

@@ -19,7 +19,7 @@ This script runs that protocol with :class:`torchpf.Tracker`:
   the per-joint-group standard deviations of Fontmarty Table 5 (given at 5 Hz; a random walk's variance grows
   linearly in time, so they become ``std sqrt(5 / fps)`` per frame): by default the registered
   ``random_walk`` prior of the ``priors`` package (truncated to the joint limits, clavicles/fingers frozen),
-  else (``--dynamics table5``) :func:`table5_std` here;
+  else (``--dynamics table5``) a plain Gaussian walk with :func:`priors.table5.table5_sigma`;
 * every filter is initialised from the first ground-truth frame and gets the same budget ``N``: SIR/QRS run
   ``N`` particles, the APF 3 layers of ``N/3``, the partitioned filters ``M`` stages of ``N/M`` (``M = 5``:
   torso then each limb, :func:`torchpf.tracker.body_partition`), the MCMC filter ``N / (1 + moves (L + 1))``
@@ -75,6 +75,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from priors.table5 import table5_sigma
 from torchpf import Skeleton, metrics
 from torchpf.assets import path as asset_path
 from torchpf.camera import camera_ring
@@ -99,31 +100,6 @@ CMU_DIR = (REPO / ".." / "shared" / "mocap" / "cmu").resolve()
 CMU_SCALE = 0.056444  # metres per CMU BVH unit
 DEFAULT_ITEMS = {"cmu": ("07_01", "35_24"), "generator": ("wave", "walk")}  # a walk and a run; wave, walk
 
-# Fontmarty Table 5: random-walk std per joint group (m, rad per frame at the paper's 5 Hz).
-TABLE5 = {
-    "root_translation": 0.07,
-    "root_rotation": 0.05,
-    "shoulder": 0.1,
-    "elbow": 0.3,
-    "hip": 0.1,
-    "knee": 0.1,
-}
-TABLE5_FPS = 5.0
-TABLE5_JOINTS = {
-    "LeftArm": "shoulder",
-    "RightArm": "shoulder",
-    "LeftForeArm": "elbow",
-    "RightForeArm": "elbow",
-    "LeftUpLeg": "hip",
-    "RightUpLeg": "hip",
-    "LeftLeg": "knee",
-    "RightLeg": "knee",
-}
-# Joints that Fontmarty's 22-DOF model does not have: the spine/neck/head chain gets a small diffusion (it
-# moves a little in walks and runs), everything else (clavicles, hip joints, wrists, hands, feet, toes) a
-# tiny one so it stays near its initial value, as a rigid part of the paper's model would.
-SPINE_JOINTS = ("LowerBack", "Spine", "Spine1", "Neck", "Neck1", "Head")
-SPINE_STD, OTHER_STD = 0.02, 0.01
 # The joints of Fontmarty's body model, on which the criteria are computed by default.
 EVAL_JOINTS = (
     "Hips",
@@ -380,26 +356,6 @@ def sequence_specs(cfg: EvalConfig) -> list[tuple[str, str]]:
 
 
 # ================================================================================================ filters
-def table5_std(skeleton: Skeleton, fps: float = TABLE5_FPS, scale: float = 1.0) -> torch.Tensor:
-    """(D,) per-DOF random-walk std of Fontmarty Table 5 (groups by CMU joint name) at ``fps``.
-
-    A random walk's variance grows linearly with time, so the paper's 5 Hz stds become
-    ``std * sqrt(5 / fps)`` per frame (the registered ``random_walk`` prior uses the same rule), times
-    ``scale``.
-    """
-    root = skeleton.joint_names[skeleton.parents.index(-1)]
-    std = torch.full((len(skeleton.dof_names),), OTHER_STD, dtype=torch.float64)
-    for d, name in enumerate(skeleton.dof_names):
-        joint = name.rsplit("_", 1)[0]
-        if joint == root:
-            std[d] = TABLE5["root_translation" if "position" in name else "root_rotation"]
-        elif joint in TABLE5_JOINTS:
-            std[d] = TABLE5[TABLE5_JOINTS[joint]]
-        elif joint in SPINE_JOINTS:
-            std[d] = SPINE_STD
-    return std * math.sqrt(TABLE5_FPS / fps) * scale
-
-
 def resolve_dynamics(cfg: EvalConfig) -> str:
     """ "table5" or "random_walk": which motion prior the run uses (``auto`` prefers the registered one)."""
     if cfg.dynamics == "auto":
@@ -410,10 +366,10 @@ def resolve_dynamics(cfg: EvalConfig) -> str:
 def make_prior(seq: EvalSequence, cfg: EvalConfig, dynamics: str):
     """The Table 5 random walk for ``seq``: the registered ``random_walk`` prior (Table 5 stds rescaled from
     5 Hz to the sequence's rate, restricted to the joint limits) or the harness's own
-    :func:`table5_std` Gaussian random walk; both have a ``(D,)`` ``std`` buffer."""
+    :func:`priors.table5.table5_sigma` Gaussian random walk; both have a ``(D,)`` ``std`` buffer."""
     if dynamics == "random_walk":
         return make_dynamics("random_walk", seq.skeleton, fps=seq.fps, scale=cfg.dynamics_scale)
-    return GaussianRandomWalk(table5_std(seq.skeleton, seq.fps, cfg.dynamics_scale).float())
+    return GaussianRandomWalk(table5_sigma(seq.skeleton, seq.fps, cfg.dynamics_scale).float())
 
 
 def make_tracker(seq: EvalSequence, name: str, budget: int, cfg: EvalConfig, dynamics: str) -> Tracker:

@@ -42,8 +42,9 @@ from pathlib import Path
 
 import torch
 
-from priors.motion import AngularRandomWalk, ProjectedGaussian, table5_sigma
+from priors.motion import AngularRandomWalk, ProjectedGaussian
 from priors.proposals import DepthGuided, SilhouetteGuided
+from priors.table5 import table5_sigma
 from torchpf import Skeleton, ik
 from torchpf.assets import path
 from torchpf.camera import look_at

@@ -3,12 +3,14 @@
 * :mod:`priors.motion`: ``AngularRandomWalk`` (Hauberg eq. 3) within the joint limits, ``ConstantVelocity``
   (Rius eq. 3),
   ``DampedSecondOrder`` (Brubaker eq. 13), ``ProjectedGaussian`` (Hauberg eq. 6-7).
+* :mod:`priors.table5`: Fontmarty Table 5, the random-walk stds per joint group, mapped onto a skeleton.
 * :mod:`priors.proposals`: data-driven importance distributions ``SilhouetteGuided`` (Hauberg eq. 12),
   ``DepthGuided`` (Hauberg eq. 13-14) and the ``AngularRejection`` baseline (Hauberg eq. 4).
 * :mod:`priors.action`: the action model Γ = (Ω, ĝ, σ) and ``ActionConstrained`` dynamics (Rius eq. 1-6).
 
-Each prior is an ``nn.Module`` with ``sample(particles, generator)`` and ``log_prob(new, old)`` where it is
-tractable, the duck-typed dynamics protocol of :mod:`torchpf.filters.protocols`.
+Each motion prior is a :class:`torchpf.distributions.Dynamics` (an ``nn.Module``): ``sample(x, generator, *,
+extras)`` and ``log_prob(x_new, x_old, *, extras)`` where it is tractable, with no-op extras hooks unless it
+keeps per-particle state.
 """
 
 from importlib import import_module

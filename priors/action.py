@@ -23,8 +23,10 @@ would double the dimension and bend straight lines of PCA). Angles are periodic,
 to the branch nearest the action's circular mean ``center`` of each angular posture DOF:
 ``x = center + wrap(θ - center)``, ``wrap`` into ``[-π, π)``. This is a function of the pose alone (a particle
 has no history), it is exactly what the fitter used, and for every DOF that stays within ±π of its mean
-during the action it equals the unwrapped (continuous) angle. DOFs whose name ends in ``position`` are
-lengths (metres) and never wrapped.
+during the action it equals the unwrapped (continuous) angle. Which DOFs are angles is the model's
+``revolute (D_full,)`` mask, from the skeleton's ``dof_revolute`` (URDF joint types) when the model was fitted
+with one; prismatic DOFs are lengths (metres) and never wrapped. Without a skeleton the mask falls back to
+the name rule of :func:`guess_revolute` (names ending in ``position`` are prismatic).
 
 **Acceptance test** (Rius eq. 6), :meth:`ActionModel.accepts`: with ``φ̃ = project(θ)``,
 
@@ -41,9 +43,10 @@ prior (eq. 3, :class:`priors.motion.ConstantVelocity`), then redraw every predic
 until it is accepted (eq. 6), at most ``max_tries`` times.
 
 **File format** (``.npz``, :meth:`ActionModel.save` / :meth:`ActionModel.load`; no pickles): a JSON string
-``metadata`` (``format``, ``version``, ``action``, ``dof_names``, ``posture_dofs``, ``angular``, ``fps``,
-``cyclic``, ``n_sigma``, ``alpha``, ``training``) and float64 arrays ``center (P,)``, ``pca_mean (P,)``,
-``components (D, P)``, ``explained_variance (D,)``, ``explained_variance_ratio (D,)``,
+``metadata`` (``format``, ``version``, ``action``, ``dof_names``, ``posture_dofs``, ``fps``,
+``cyclic``, ``n_sigma``, ``alpha``, ``training``), the bool array ``revolute (D_full,)`` (since version 2;
+a version-1 file falls back to :func:`guess_revolute`, with a warning) and float64 arrays ``center (P,)``,
+``pca_mean (P,)``, ``components (D, P)``, ``explained_variance (D,)``, ``explained_variance_ratio (D,)``,
 ``mean_performance (K, D)``, ``std (K, D)``, ``delta (D,)``, ``sigma_phi (D_full,)``, ``alpha ()``; optionally
 the training performances for plots: ``train_coords (M, D)`` (aSpace coordinates of all frames, concatenated),
 ``train_lengths (R,)`` int (frames per performance) and ``train_phase (M,)`` int (matched posture per frame).
@@ -62,6 +65,7 @@ import json
 import math
 import os
 import tempfile
+import warnings
 import zipfile
 import zlib
 from collections.abc import Mapping, Sequence
@@ -72,11 +76,12 @@ import torch
 from torch import Tensor, nn
 
 from priors.motion import ConstantVelocity
+from torchpf.distributions import Dynamics, as_dynamics, flatten_batch, unflatten_batch, wrap_angle
 
 #: ``metadata["format"]`` of an action-model file.
 FORMAT = "torchpf-action-model"
-#: Current file-format version; files with a higher version are refused.
-FORMAT_VERSION = 1
+#: Current file-format version; files with a higher version are refused. Version 2 added ``revolute``.
+FORMAT_VERSION = 2
 
 _REQUIRED = (
     "center",
@@ -96,14 +101,14 @@ class ActionModelFormatError(ValueError):
     """An action-model file that cannot be used; the message starts with the file's path."""
 
 
-def is_angular(dof_name: str) -> bool:
-    """True for a revolute DOF (radians), False for a prismatic one: names ending in ``position`` (metres)."""
-    return not dof_name.lower().endswith("position")
+def guess_revolute(dof_names: Sequence[str]) -> list[bool]:
+    """``(D,)`` revolute (radians) or prismatic (metres) per DOF *from names alone*: names ending in
+    ``position`` (BVH channels) are prismatic.
 
-
-def wrap_angle(x: Tensor) -> Tensor:
-    """Wrap radians into ``[-π, π)``, elementwise."""
-    return torch.remainder(x + math.pi, 2.0 * math.pi) - math.pi
+    Only the fallback where no skeleton is at hand (performances without one, version-1 model files);
+    a skeleton's ``dof_revolute`` (URDF joint types) is the answer wherever it is available.
+    """
+    return [not str(n).lower().endswith("position") for n in dof_names]
 
 
 def _f64(value, name: str, ndim: int) -> Tensor:
@@ -138,7 +143,8 @@ class ActionModel(nn.Module):
         action: action name, e.g. ``"walk"``.
         cyclic: whether ĝ is one cycle of a periodic action (its last posture precedes its first).
         n_sigma: acceptance half-width in units of σ (Rius: 2).
-        angular: ``(P,)`` which posture DOFs are angles (default: names not ending in ``position``).
+        revolute: ``(D_full,)`` bool, which DOFs are angles (a skeleton's ``dof_revolute``; default
+            :func:`guess_revolute` of ``dof_names``). Its posture entries are the buffer ``angular (P,)``.
         explained_variance: ``(D,)`` PCA variances (rad²); ``explained_variance_ratio`` their fractions.
         training: optional dict for plots: ``coords (M, D)``, ``lengths (R,)``, ``phase (M,)``, and JSON-able
             ``info`` (performance names, fitter configuration).
@@ -161,7 +167,7 @@ class ActionModel(nn.Module):
         action: str = "action",
         cyclic: bool = False,
         n_sigma: float = 2.0,
-        angular: Sequence[bool] | None = None,
+        revolute: Sequence[bool] | Tensor | None = None,
         explained_variance=None,
         explained_variance_ratio=None,
         training: Mapping[str, Any] | None = None,
@@ -213,10 +219,12 @@ class ActionModel(nn.Module):
             raise ValueError(f"ActionModel: fps must be > 0, got {fps}")
         if not (math.isfinite(float(n_sigma)) and float(n_sigma) > 0):
             raise ValueError(f"ActionModel: n_sigma must be > 0, got {n_sigma}")
-        if angular is None:
-            angular = [is_angular(n) for n in self.posture_dofs]
-        if len(angular) != P:
-            raise ValueError(f"ActionModel: angular has {len(angular)} entries, expected {P}")
+        revolute = guess_revolute(self.dof_names) if revolute is None else revolute
+        revolute = torch.as_tensor(
+            np.asarray(revolute, dtype=bool) if not isinstance(revolute, Tensor) else revolute
+        )
+        if tuple(revolute.shape) != (Dfull,):
+            raise ValueError(f"ActionModel: revolute has shape {tuple(revolute.shape)}, expected ({Dfull},)")
 
         self.action = str(action)
         self.alpha = float(alpha)
@@ -224,7 +232,8 @@ class ActionModel(nn.Module):
         self.cyclic = bool(cyclic)
         self.n_sigma = float(n_sigma)
         self.register_buffer("posture_index", torch.tensor([index[n] for n in self.posture_dofs]))
-        self.register_buffer("angular", torch.tensor([bool(a) for a in angular]))
+        self.register_buffer("revolute", revolute.detach().to("cpu", torch.bool).clone())
+        self.register_buffer("angular", self.revolute[self.posture_index])
         self.register_buffer("center", center)
         self.register_buffer("pca_mean", pca_mean)
         self.register_buffer("components", components)
@@ -352,7 +361,37 @@ class ActionModel(nn.Module):
             return self
         _check_same_dofs(self.dof_names, names, f"action model {self.action!r}")
         perm = torch.tensor([self.dof_names.index(n) for n in names])
-        return ActionModel(**{**self._init_kwargs(), "dof_names": names, "sigma_phi": self.sigma_phi[perm]})
+        return ActionModel(
+            **{
+                **self._init_kwargs(),
+                "dof_names": names,
+                "sigma_phi": self.sigma_phi[perm],
+                "revolute": self.revolute[perm],
+            }
+        )
+
+    def check_revolute(self, revolute: Tensor) -> ActionModel:
+        """``self`` after checking that its angular posture DOFs are those of ``revolute (D_full,)`` bool (a
+        skeleton's ``dof_revolute`` in the model's ``dof_names`` order).
+
+        The posture angles were wrapped with the model's own mask when it was fitted, so a model whose mask
+        disagrees with the skeleton's joint types projects poses wrongly; it has to be refitted.
+
+        Raises:
+            ValueError: the masks differ on a posture DOF (names them).
+        """
+        want = torch.as_tensor(revolute, dtype=torch.bool).cpu()[self.posture_index]
+        bad = [
+            n
+            for n, a, b in zip(self.posture_dofs, self.angular.tolist(), want.tolist(), strict=True)
+            if a != b
+        ]
+        if bad:
+            raise ValueError(
+                f"action model {self.action!r} disagrees with the skeleton's joint types on whether posture "
+                f"DOFs {bad[:5]} are angles; refit the model with the skeleton"
+            )
+        return self
 
     def _init_kwargs(self) -> dict[str, Any]:
         return dict(
@@ -370,7 +409,7 @@ class ActionModel(nn.Module):
             action=self.action,
             cyclic=self.cyclic,
             n_sigma=self.n_sigma,
-            angular=self.angular.tolist(),
+            revolute=self.revolute,
             explained_variance=self.explained_variance,
             explained_variance_ratio=self.explained_variance_ratio,
             training=self.training_data,
@@ -385,7 +424,6 @@ class ActionModel(nn.Module):
             "action": self.action,
             "dof_names": self.dof_names,
             "posture_dofs": self.posture_dofs,
-            "angular": [bool(a) for a in self.angular.tolist()],
             "fps": self.fps,
             "cyclic": self.cyclic,
             "n_sigma": self.n_sigma,
@@ -394,6 +432,7 @@ class ActionModel(nn.Module):
         }
         arrays = {name: getattr(self, name).detach().cpu().numpy() for name in _REQUIRED}
         arrays["alpha"] = np.array(self.alpha)
+        arrays["revolute"] = self.revolute.numpy()
         if self.training_data is not None:
             arrays["train_coords"] = self.training_data["coords"].numpy()
             arrays["train_lengths"] = self.training_data["lengths"].numpy()
@@ -444,6 +483,7 @@ class ActionModel(nn.Module):
             )
         absent = [k for k in (*_REQUIRED, "alpha") if k not in data]
         absent += [k for k in ("dof_names", "posture_dofs", "fps") if k not in meta]
+        absent += ["revolute"] if version >= 2 and "revolute" not in data else []
         if absent:
             raise bad(f"missing entries {absent}")
         training = None
@@ -455,10 +495,11 @@ class ActionModel(nn.Module):
                 "info": meta.get("training", {}),
             }
         try:
+            revolute = data["revolute"] if version >= 2 else _revolute_v1(meta, path)
             model = cls(
                 dof_names=meta["dof_names"],
                 posture_dofs=meta["posture_dofs"],
-                angular=meta.get("angular"),
+                revolute=revolute,
                 center=data["center"],
                 pca_mean=data["pca_mean"],
                 components=data["components"],
@@ -490,6 +531,28 @@ class ActionModel(nn.Module):
             f"D={self.n_components}, K={self.n_postures}, cyclic={self.cyclic}, fps={self.fps:g}, "
             f"alpha={self.alpha:.3g}, n_sigma={self.n_sigma:g}"
         )
+
+
+def _revolute_v1(meta: Mapping[str, Any], path: str) -> list[bool]:
+    """The revolute mask of a version-1 file, which stores none: the name rule (what the fitter used then),
+    with the posture entries the file's ``angular`` list gives."""
+    warnings.warn(
+        f"{path}: action-model format version 1 stores no revolute mask; DOFs are taken as revolute unless "
+        "their name ends in 'position' (re-save the model to store the mask)",
+        stacklevel=3,
+    )
+    names = [str(n) for n in meta["dof_names"]]
+    revolute = guess_revolute(names)
+    angular = meta.get("angular")
+    if angular is not None:
+        posture = [str(n) for n in meta["posture_dofs"]]
+        if len(angular) != len(posture):
+            raise ValueError(f"angular has {len(angular)} entries, expected {len(posture)}")
+        index = {n: i for i, n in enumerate(names)}
+        for n, a in zip(posture, angular, strict=True):
+            if n in index:
+                revolute[index[n]] = bool(a)
+    return revolute
 
 
 def _check_same_dofs(have: Sequence[str], want: Sequence[str], what: str) -> None:
@@ -538,7 +601,7 @@ def _savez_atomic(path: str | os.PathLike, **arrays) -> None:
 
 
 # ================================================================================================ dynamics
-class ActionConstrained(nn.Module):
+class ActionConstrained(Dynamics):
     """Action-constrained first-order dynamics (Rius eq. 3-6), a stateful dynamics for the filters.
 
     Prediction is a two-step process per particle (Rius §3.1):
@@ -559,23 +622,31 @@ class ActionConstrained(nn.Module):
     ``sample_from_noise`` is not provided: rejection sampling uses a random number of draws, so QRS sampling
     does not apply.
 
-    Diagnostics of the last :meth:`sample` call are in :attr:`stats` (tensors, no host sync beyond the
-    retry loop's "anything left?" check): ``accepted`` (fraction of particles finally accepted, ``(...)``),
-    ``accepted_first`` (fraction accepted at the first draw, ``(...)``) and ``tries`` (mean number of draws
-    per particle, ``(...)``). :meth:`sample_with_stats` returns them instead.
+    Acceptance is reported functionally, never kept on the module:
+
+    * per particle, riding with the particle state: the extra ``"accepted"`` ``(..., N)`` bool, set by
+      :meth:`init_extras` and :meth:`update_extras` once a frame's particles are final: whether eq. 6 can
+      accept the particle (``P(accept | φ_t) > 0``, i.e. it lies in the support of eq. 5). The accepted
+      fraction of a filter's frame is ``state.extras["accepted"].float().mean(-1)``;
+    * per draw: :meth:`sample_with_stats` returns the sampler's own record, ``accepted`` (finally accepted),
+      ``accepted_first`` (accepted at the first draw), both ``(..., N)`` bool, and ``tries`` ``(..., N)``.
 
     Args:
         model: the :class:`ActionModel` (its ``dof_names`` are the particle layout).
-        dynamics: eq. 3 dynamics with ``sample(x, generator, extras=)``; default built from the model.
+        dynamics: eq. 3 dynamics (a :class:`torchpf.distributions.Dynamics`, or a duck-typed object adapted
+            once by :func:`torchpf.distributions.as_dynamics`); default built from the model.
         max_tries: at most this many draws per particle and frame (>= 1).
         alpha: overrides the model's α for the default dynamics (Rius tracked with 0.5).
         sigma_scale: multiplies the model's σ_φ for the default dynamics.
+        skeleton: the particles' skeleton, if known: the model is put in its ``dof_names`` order and its
+            angular posture DOFs are checked against ``skeleton.dof_revolute``
+            (:meth:`ActionModel.check_revolute`).
 
     Example::
 
-        dyn = ActionConstrained(ActionModel.load("walk.npz", dof_names=skel.dof_names), alpha=0.5)
+        dyn = ActionConstrained(ActionModel.load("walk.npz"), alpha=0.5, skeleton=skel)
         pf = ParticleFilter(dyn, likelihood, n_particles=2000)
-        state = pf.step(pf.init(x0), obs); dyn.stats["accepted_first"]
+        state = pf.step(pf.init(x0), obs); state.extras["accepted"].float().mean(-1)
     """
 
     def __init__(
@@ -586,34 +657,33 @@ class ActionConstrained(nn.Module):
         max_tries: int = 20,
         alpha: float | None = None,
         sigma_scale: float = 1.0,
+        skeleton=None,
     ):
         super().__init__()
         if int(max_tries) < 1:
             raise ValueError(f"max_tries must be >= 1, got {max_tries}")
+        if skeleton is not None:
+            model = model.for_dof_names(skeleton.dof_names).check_revolute(skeleton.dof_revolute)
         if dynamics is None:
             sigma = model.sigma_phi * float(sigma_scale)
             dynamics = ConstantVelocity(sigma, alpha=model.alpha if alpha is None else float(alpha))
         elif alpha is not None or sigma_scale != 1.0:
             raise ValueError("alpha and sigma_scale configure the default dynamics; not with dynamics=")
         self.model = model
-        self.dynamics = dynamics
+        self.dynamics = as_dynamics(dynamics)
         self.max_tries = int(max_tries)
-        self.stats: dict[str, Tensor] = {}
 
-    # StatefulDynamics protocol -------------------------------------------------------------------------
-    def init_extras(self, x0: Tensor) -> Mapping[str, Tensor]:
-        """The wrapped dynamics' initial extras (zero velocity), ``{"velocity": (..., N, D)}``."""
-        if hasattr(self.dynamics, "init_extras"):
-            return self.dynamics.init_extras(x0)
-        return {}
+    def _accepted(self, x: Tensor) -> Tensor:
+        """``(..., N)`` bool: eq. 6 can accept ``x`` (``P(accept | x) > 0``)."""
+        return self.model.accept_probability(x) > 0
 
-    def update_extras(
-        self, x_new: Tensor, x_old: Tensor, extras: Mapping[str, Tensor]
-    ) -> Mapping[str, Tensor]:
-        """The wrapped dynamics' update (Rius eq. 3's velocity smoothing)."""
-        if hasattr(self.dynamics, "update_extras"):
-            return self.dynamics.update_extras(x_new, x_old, extras)
-        return dict(extras)
+    def init_extras(self, x0: Tensor) -> dict[str, Tensor]:
+        """The wrapped dynamics' initial extras (zero velocity ``(..., N, D)``) and ``"accepted"``."""
+        return {**self.dynamics.init_extras(x0), "accepted": self._accepted(x0)}
+
+    def update_extras(self, x_new: Tensor, x_old: Tensor, extras: Mapping[str, Tensor]) -> dict[str, Tensor]:
+        """The wrapped dynamics' update (Rius eq. 3's velocity smoothing) and ``"accepted"`` of ``x_new``."""
+        return {**self.dynamics.update_extras(x_new, x_old, extras), "accepted": self._accepted(x_new)}
 
     def sample(
         self,
@@ -622,9 +692,8 @@ class ActionConstrained(nn.Module):
         *,
         extras: Mapping[str, Tensor] | None = None,
     ) -> Tensor:
-        """Accepted predictions ``(..., N, D) -> (..., N, D)``; diagnostics go to :attr:`stats`."""
-        out, self.stats = self.sample_with_stats(x, generator, extras=extras)
-        return out
+        """Accepted predictions ``(..., N, D) -> (..., N, D)`` (eq. 3 redrawn until eq. 6 accepts)."""
+        return self.sample_with_stats(x, generator, extras=extras)[0]
 
     def sample_with_stats(
         self,
@@ -633,12 +702,15 @@ class ActionConstrained(nn.Module):
         *,
         extras: Mapping[str, Tensor] | None = None,
     ) -> tuple[Tensor, dict[str, Tensor]]:
-        """Like :meth:`sample`, returning ``(x_new (..., N, D), stats)`` (see the class docstring)."""
-        extras = dict(extras or {})
-        batch = x.shape[:-1]
-        flat_x = x.reshape(-1, x.shape[-1])  # (M, D): particles are independent, so batch dims flatten
-        flat_extras = {k: v.reshape(-1, *v.shape[len(batch) :]) for k, v in extras.items()}
-        out = self._draw(flat_x, flat_extras, generator)
+        """Like :meth:`sample`, also returning the sampler's record per particle: ``(x_new (..., N, D),
+        {"accepted": (..., N) bool, "accepted_first": (..., N) bool, "tries": (..., N)})``.
+
+        No host sync beyond the retry loop's "anything left?" check.
+        """
+        # particles are independent, so all batch dims flatten to one (M, D)
+        flat_x, batch = flatten_batch(x, 1)
+        flat_extras = {k: flatten_batch(v, v.ndim - len(batch))[0] for k, v in (extras or {}).items()}
+        out = self.dynamics.sample(flat_x, generator, extras=flat_extras)
         ok = self.model.accepts(out, generator)
         first = ok.clone()
         tries = torch.ones_like(ok, dtype=x.dtype)
@@ -646,29 +718,22 @@ class ActionConstrained(nn.Module):
             pending = (~ok).nonzero().squeeze(-1)  # one host sync per retry round, not per particle
             if pending.numel() == 0:
                 break
-            sub = self._draw(flat_x[pending], {k: v[pending] for k, v in flat_extras.items()}, generator)
+            sub_extras = {k: v[pending] for k, v in flat_extras.items()}
+            sub = self.dynamics.sample(flat_x[pending], generator, extras=sub_extras)
             acc = self.model.accepts(sub, generator)
             out = out.index_copy(0, pending, sub)
             ok = ok.index_copy(0, pending, acc)
             tries = tries.index_add(0, pending, torch.ones_like(sub[:, 0]))
         stats = {
-            "accepted": ok.reshape(batch).to(x.dtype).mean(-1),
-            "accepted_first": first.reshape(batch).to(x.dtype).mean(-1),
-            "tries": tries.reshape(batch).mean(-1),
+            "accepted": unflatten_batch(ok, batch),
+            "accepted_first": unflatten_batch(first, batch),
+            "tries": unflatten_batch(tries, batch),
         }
-        return out.reshape(x.shape), stats
-
-    def _draw(self, x: Tensor, extras: Mapping[str, Tensor], generator: torch.Generator | None) -> Tensor:
-        if hasattr(self.dynamics, "update_extras"):
-            return self.dynamics.sample(x, generator, extras=extras)
-        return self.dynamics.sample(x, generator)
+        return unflatten_batch(out, batch), stats
 
     def log_prob(self, x_new: Tensor, x_old: Tensor, *, extras: Mapping[str, Tensor] | None = None) -> Tensor:
         """``log p(x_new | x_old) + log P(accept | x_new)`` ``(..., N)``, unnormalised in x_old (eq. 5)."""
-        if hasattr(self.dynamics, "update_extras"):
-            base = self.dynamics.log_prob(x_new, x_old, extras=extras)
-        else:
-            base = self.dynamics.log_prob(x_new, x_old)
+        base = self.dynamics.log_prob(x_new, x_old, extras=extras)
         return base + torch.log(self.model.accept_probability(x_new).to(base))
 
     def extra_repr(self) -> str:

@@ -4,7 +4,7 @@ torchpf never imports this package; it finds these factories through the ``torch
 group declared in ``pyproject.toml``. Each factory is ``factory(skeleton, **options) -> dynamics``.
 
 * ``random_walk``: angular random walk (Hauberg eq. 3, Fontmarty §3.1) with the per-joint-group stds of
-  Fontmarty Table 5 (:func:`priors.motion.table5_sigma`), restricted to the joint limits.
+  Fontmarty Table 5 (:func:`priors.table5.table5_sigma`), restricted to the joint limits.
 * ``constant_velocity``: Rius eq. 3 (:class:`priors.motion.ConstantVelocity`), diffusion from Table 5.
 * ``damped``: Brubaker eq. 13 (:class:`priors.motion.DampedSecondOrder`).
 * ``action``: the action-constrained dynamics of Rius eq. 3 + 6 from a saved action model (``model=path``).
@@ -18,16 +18,10 @@ Example::
 from __future__ import annotations
 
 from priors.action import ActionConstrained, ActionModel
-from priors.motion import (
-    TABLE5,
-    TABLE5_FPS,
-    AngularRandomWalk,
-    ConstantVelocity,
-    DampedSecondOrder,
-    table5_sigma,
-)
+from priors.motion import AngularRandomWalk, ConstantVelocity, DampedSecondOrder
+from priors.table5 import TABLE5_FPS, table5_sigma
 
-__all__ = ["TABLE5", "action", "constant_velocity", "damped", "random_walk", "table5_sigma"]
+__all__ = ["action", "constant_velocity", "damped", "random_walk"]
 
 
 def random_walk(skeleton, *, fps: float = TABLE5_FPS, scale: float = 1.0, **options):

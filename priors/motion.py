@@ -1,16 +1,18 @@
 """Motion priors ``p(θ_t | θ_{t-1})`` for articulated tracking: the dynamics a particle filter samples from.
 
-Every prior is an ``nn.Module`` following the duck-typed dynamics protocol of
-:mod:`torchpf.filters.protocols`: ``sample(x, generator)`` draws ``x_t`` for every particle and
-``log_prob(x_new, x_old)`` returns ``log p(x_new | x_old)`` ``(..., N)`` where it is tractable. Particles are
-``(..., N, D)`` pose vectors in ``Skeleton.dof_names`` order (radians / metres).
+Every prior is a :class:`torchpf.distributions.Dynamics` (an ``nn.Module``) with the one signature
+``sample(x, generator=None, *, extras=None)`` that draws ``x_t`` for every particle,
+``log_prob(x_new, x_old, *, extras=None)`` -> ``log p(x_new | x_old)`` ``(..., N)`` where it is tractable,
+``sample_from_noise(x, eps, *, extras=None)`` for QRS sampling, and the extras hooks ``init_extras`` /
+``update_extras`` (no-ops for the priors that keep no per-particle state). Particles are ``(..., N, D)`` pose
+vectors in ``Skeleton.dof_names`` order (radians / metres).
 
 * :class:`ConstantVelocity` -- Rius eq. 3: ``φ_t = φ_{t-1} + V + N(0, σ_φ²)`` with a per-particle
   velocity ``V_t = α V_{t-1} + (1-α)(φ_{t-1} - φ_{t-2})`` carried as the extra ``"velocity"``.
 * :class:`DampedSecondOrder` -- Brubaker eq. 13: ``s_{t+1} = s_t + κ (s_t - s_{t-1}) + η``.
 * :class:`AngularRandomWalk` -- Hauberg eq. 3: ``p(θ_t | θ_{t-1}) ∝ N(θ_t | θ_{t-1}, diag σ²) U_Θ(θ_t)``,
   the Gaussian random walk in joint angles truncated to the joint limits, with per-DOF σ defaulting to
-  Fontmarty Table 5 (:func:`table5_sigma`).
+  Fontmarty Table 5 (:func:`priors.table5.table5_sigma`).
 * :class:`ProjectedGaussian` -- Hauberg eq. 6-7: joint *positions* drawn from ``N(F(θ_{t-1}), Σ)`` with
   per-joint blocks ``Σ_l`` and projected onto the pose manifold by :func:`torchpf.ik.project`. Its spatial
   spread is the same for every joint, where the angular walk's grows along each kinematic chain (hands
@@ -26,15 +28,14 @@ Example::
 from __future__ import annotations
 
 import math
-import re
 from collections.abc import Mapping
 
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
+from priors.table5 import TABLE5_FPS, table5_sigma
 from torchpf import ik
-
-_LOG_2PI = math.log(2.0 * math.pi)
+from torchpf.distributions import LOG_2PI, Dynamics, diag_normal_log_prob, randn_like
 
 
 def _as_buffer(value, name: str) -> Tensor:
@@ -47,29 +48,8 @@ def _as_buffer(value, name: str) -> Tensor:
     return t
 
 
-def _randn_like(x: Tensor, generator: torch.Generator | None) -> Tensor:
-    return torch.randn(x.shape, generator=generator, dtype=x.dtype, device=x.device)
-
-
-def _diag_normal_log_prob(x: Tensor, mean: Tensor, sigma: Tensor) -> Tensor:
-    """``log N(x; mean, diag σ²)`` summed over the last dim, ``(..., D) -> (...)``.
-
-    DOFs with ``σ = 0`` are deterministic (a Dirac): they are left out of the sum, i.e. the density is taken
-    with respect to the Lebesgue measure of the DOFs that do move. That keeps frozen DOFs (fingers, a fixed
-    root) from turning every weight into ``-inf``/``+inf``; ``x`` is assumed to equal ``mean`` there.
-    """
-    sigma = sigma.to(x)
-    free = sigma > 0
-    safe = torch.where(free, sigma, torch.ones_like(sigma))
-    z = (x - mean) / safe
-    per_dof = -0.5 * z.square() - torch.log(safe) - 0.5 * _LOG_2PI
-    return torch.where(free, per_dof, torch.zeros_like(per_dof)).sum(-1)
-
-
-class _VelocityDynamics(nn.Module):
+class _VelocityDynamics(Dynamics):
     """Gaussian diffusion around ``x + dt * gain * v`` with a per-particle velocity extra ``"velocity"``."""
-
-    noise_dim = None  # standard-normal noise has the state's dimension D (protocol default)
 
     def __init__(self, sigma, *, dt: float = 1.0):
         super().__init__()
@@ -117,7 +97,7 @@ class _VelocityDynamics(nn.Module):
         extras: Mapping[str, Tensor] | None = None,
     ) -> Tensor:
         """Draw ``x_t = predict(x, v) + σ ε``, ``ε ~ N(0, I)``: ``(..., N, D) -> (..., N, D)``."""
-        return self.sample_from_noise(x, _randn_like(x, generator), extras=extras)
+        return self.sample_from_noise(x, randn_like(x, generator), extras=extras)
 
     def sample_from_noise(
         self, x: Tensor, eps: Tensor, *, extras: Mapping[str, Tensor] | None = None
@@ -127,7 +107,7 @@ class _VelocityDynamics(nn.Module):
 
     def log_prob(self, x_new: Tensor, x_old: Tensor, *, extras: Mapping[str, Tensor] | None = None) -> Tensor:
         """``log N(x_new; predict(x_old, v), diag σ²)`` ``(..., N)``; σ = 0 DOFs are left out (Dirac)."""
-        return _diag_normal_log_prob(x_new, self.predict(x_old, extras), self._scale(x_new))
+        return diag_normal_log_prob(x_new, self.predict(x_old, extras), self._scale(x_new))
 
     def update_extras(
         self, x_new: Tensor, x_old: Tensor, extras: Mapping[str, Tensor] | None = None
@@ -223,53 +203,6 @@ class DampedSecondOrder(_VelocityDynamics):
 
 # ------------------------------------------------------------------------------------- angular random walk
 
-#: Fontmarty Table 5: random-walk std per joint group at a 5 Hz acquisition rate (rad, or m for the base).
-TABLE5 = {
-    "base_translation": 0.07,
-    "base_rotation": 0.05,
-    "shoulder": 0.1,
-    "elbow": 0.3,
-    "hip": 0.1,
-    "knee": 0.1,
-}
-TABLE5_FPS = 5.0
-
-# Joint name -> group, first match wins. Table 5 covers the 22-DOF model; for the CMU joint tree of
-# human.urdf the other joints get a spine/extremity std, and the joints that real CMU data keeps at zero and
-# silhouettes cannot see (clavicles, the pelvis-to-hip links, fingers, thumbs) are held still.
-_GROUPS = [
-    (r"HipJoint$|^(Left|Right)Shoulder$|Finger|Thumb|HandIndex", 0.0),
-    (r"ForeArm$|elbow", TABLE5["elbow"]),
-    (r"UpLeg$|_hip$", TABLE5["hip"]),
-    (r"(Left|Right)Leg$|knee", TABLE5["knee"]),
-    (r"(Left|Right)Arm$|shoulder", TABLE5["shoulder"]),
-    (r"Foot$|Toe|ankle|Hand$|wrist", 0.1),
-    (r"Back|Spine|Neck|Head|torso|neck|head", 0.05),
-]
-
-
-def table5_sigma(skeleton, fps: float = TABLE5_FPS, scale: float = 1.0) -> torch.Tensor:
-    """(D,) per-DOF random-walk std of Fontmarty Table 5 for ``skeleton``, at ``fps``.
-
-    The table is given at 5 Hz; a random walk's std grows with the square root of the time step, so the
-    std per frame at ``fps`` is ``sigma_5Hz * sqrt(5 / fps)``, times ``scale``. The root's prismatic DOFs
-    get the base translation std (m), its revolute DOFs the base rotation std; other DOFs are grouped by
-    the name of the joint they move (``skeleton.dof_joints``).
-    """
-    if not fps > 0:
-        raise ValueError(f"fps must be > 0, got {fps}")
-    names, owner, parents = skeleton.joint_names, skeleton.dof_joints, skeleton.parents
-    sigma = []
-    for d, j in enumerate(owner):
-        if j >= 0 and parents[j] < 0:
-            kind = skeleton.chain.find_joint(skeleton.dof_names[d]).joint_type
-            s = TABLE5["base_translation"] if kind == "prismatic" else TABLE5["base_rotation"]
-        else:
-            joint = names[j] if j >= 0 else ""
-            s = next((v for pattern, v in _GROUPS if re.search(pattern, joint)), 0.05)
-        sigma.append(s)
-    return torch.tensor(sigma, dtype=torch.float64) * math.sqrt(TABLE5_FPS / fps) * scale
-
 
 def _log_ndtr_interval(a: Tensor, b: Tensor) -> Tensor:
     """``log(Φ(b) - Φ(a))`` for ``a <= b``, stable in both tails (and for infinite bounds)."""
@@ -294,7 +227,7 @@ def _truncnorm_icdf(mu: Tensor, sigma: Tensor, lo: Tensor, hi: Tensor, eps: Tens
     return mu + sigma * torch.where(flip, -z, z)
 
 
-class AngularRandomWalk(nn.Module):
+class AngularRandomWalk(Dynamics):
     """Gaussian random walk in joint angles, restricted to the joint limits (Hauberg eq. 3).
 
     ``p(θ_t | θ_{t-1}) ∝ N(θ_t | θ_{t-1}, diag σ²) U_Θ(θ_t)`` with ``Θ = [lower, upper]`` a box. How the
@@ -352,12 +285,13 @@ class AngularRandomWalk(nn.Module):
         skeleton,
         sigma=None,
         *,
-        fps: float = 5.0,
+        fps: float = TABLE5_FPS,
         scale: float = 1.0,
         limits: str = "reject",
         max_tries: int = 50,
     ) -> AngularRandomWalk:
-        """Walk on ``skeleton``'s DOFs and limits; ``sigma`` defaults to :func:`table5_sigma` (``fps``)."""
+        """Walk on ``skeleton``'s DOFs and limits; ``sigma`` defaults to
+        :func:`priors.table5.table5_sigma` (``fps``, ``scale``)."""
         if sigma is None:
             sigma = table5_sigma(skeleton, fps, scale)
         return cls(sigma, skeleton.lower, skeleton.upper, limits=limits, max_tries=max_tries)
@@ -384,12 +318,12 @@ class AngularRandomWalk(nn.Module):
         out = torch.where(only_lo, lo + (y - lo).abs(), out)
         return torch.where(only_hi, hi - (hi - y).abs(), out)
 
-    def sample(self, x: Tensor, generator: torch.Generator | None = None) -> Tensor:
-        """Draw ``θ_t ~ p(· | θ_{t-1} = x)``: ``(..., N, D) -> (..., N, D)``."""
+    def sample(self, x: Tensor, generator: torch.Generator | None = None, *, extras=None) -> Tensor:
+        """Draw ``θ_t ~ p(· | θ_{t-1} = x)``: ``(..., N, D) -> (..., N, D)`` (keeps no extras)."""
         if self.limits != "reject":
-            return self.sample_from_noise(x, _randn_like(x, generator))
+            return self.sample_from_noise(x, randn_like(x, generator))
         sig, lo, hi = self._params(x)
-        y = x + sig * _randn_like(x, generator)
+        y = x + sig * randn_like(x, generator)
         moving = sig > 0
         bad = ((y < lo) | (y > hi)) & moving
         for _ in range(self.max_tries):
@@ -401,12 +335,12 @@ class AngularRandomWalk(nn.Module):
             bad = ((y < lo) | (y > hi)) & moving
         if bool(bad.any()):  # rare: far-out parents; finish with the exact inverse-CDF sampler
             exact = _truncnorm_icdf(
-                x, sig.where(moving, torch.ones_like(sig)), lo, hi, _randn_like(x, generator)
+                x, sig.where(moving, torch.ones_like(sig)), lo, hi, randn_like(x, generator)
             )
             y = torch.where(bad, exact, y)
         return y
 
-    def sample_from_noise(self, x: Tensor, eps: Tensor) -> Tensor:
+    def sample_from_noise(self, x: Tensor, eps: Tensor, *, extras=None) -> Tensor:
         """Deterministic map of standard-normal ``eps (..., N, D)`` to a draw (QRS sampling)."""
         sig, lo, hi = self._params(x)
         eps = eps.to(x)
@@ -421,18 +355,18 @@ class AngularRandomWalk(nn.Module):
             return torch.maximum(torch.minimum(y, hi), lo)
         return y
 
-    def log_prob(self, x_new: Tensor, x_old: Tensor) -> Tensor:
+    def log_prob(self, x_new: Tensor, x_old: Tensor, *, extras=None) -> Tensor:
         """``log p(x_new | x_old)`` ``(..., N)`` under the chosen limit handling (class docstring)."""
         sig, lo, hi = self._params(x_new)
         moving = sig > 0
         s = torch.where(moving, sig, torch.ones_like(sig))
         if self.limits == "none":
-            return _diag_normal_log_prob(x_new, x_old, sig)
+            return diag_normal_log_prob(x_new, x_old, sig)
         if self.limits == "reflect":
             per = self._reflect_log_density(x_new, x_old, s, lo, hi)
         else:
             z = (x_new - x_old) / s
-            per = -0.5 * z.square() - torch.log(s) - 0.5 * _LOG_2PI
+            per = -0.5 * z.square() - torch.log(s) - 0.5 * LOG_2PI
             if self.limits == "reject":
                 per = per - _log_ndtr_interval((lo - x_old) / s, (hi - x_old) / s)
             else:  # clamp: probability masses at the bounds
@@ -461,7 +395,7 @@ class AngularRandomWalk(nn.Module):
         valid.append((torch.isfinite(hi) & ~torch.isfinite(lo)).expand_as(x))
         y = torch.stack(images)
         z = (y - mu) / s
-        lp = -0.5 * z.square() - torch.log(s) - 0.5 * _LOG_2PI
+        lp = -0.5 * z.square() - torch.log(s) - 0.5 * LOG_2PI
         lp = torch.where(torch.stack(valid), lp, torch.full_like(lp, -math.inf))
         return torch.logsumexp(lp, 0)
 
@@ -485,7 +419,7 @@ def _joint_scale(joint_sigma, J: int) -> Tensor:
     raise ValueError(f"joint_sigma must be a scalar, (J,) stds or (J, 3, 3) covariances with J={J}")
 
 
-class ProjectedGaussian(nn.Module):
+class ProjectedGaussian(Dynamics):
     """Projected prior (Hauberg eq. 6-7): a Gaussian on joint positions, projected onto the pose manifold.
 
     ``x̂_t ~ N(F(θ_{t-1}), Σ)`` with ``Σ = blockdiag(Σ_1 .. Σ_J)`` (one 3x3 block per joint), then
@@ -531,7 +465,7 @@ class ProjectedGaussian(nn.Module):
     def sample_joints(self, x: Tensor, generator: torch.Generator | None = None) -> Tensor:
         """Embedding-space draw ``x̂ ~ N(F(x), Σ)`` ``(..., N, J, 3)`` (before projection)."""
         mu = self.mean_joints(x)
-        return self.joints_from_noise(mu, _randn_like(mu, generator))
+        return self.joints_from_noise(mu, randn_like(mu, generator))
 
     def joints_from_noise(self, mu: Tensor, eps: Tensor) -> Tensor:
         """``μ + L_l ε_l`` per joint: ``(..., J, 3), (..., J, 3) -> (..., J, 3)``."""
@@ -542,11 +476,11 @@ class ProjectedGaussian(nn.Module):
         """Eq. 7: joint positions ``(..., N, J, 3)`` -> poses ``(..., N, D)`` by IK from ``x_old``."""
         return ik.project(self.skeleton, joints, x_old, **self.ik_options)
 
-    def sample(self, x: Tensor, generator: torch.Generator | None = None) -> Tensor:
+    def sample(self, x: Tensor, generator: torch.Generator | None = None, *, extras=None) -> Tensor:
         """Draw ``θ_t``: ``(..., N, D) -> (..., N, D)`` (within the joint limits)."""
         return self.project(self.sample_joints(x, generator), x)
 
-    def sample_from_noise(self, x: Tensor, eps: Tensor) -> Tensor:
+    def sample_from_noise(self, x: Tensor, eps: Tensor, *, extras=None) -> Tensor:
         """Deterministic map of standard-normal ``eps (..., N, 3J)`` to a draw (QRS sampling)."""
         mu = self.mean_joints(x)
         return self.project(self.joints_from_noise(mu, eps.reshape(mu.shape)), x)
@@ -559,11 +493,11 @@ class ProjectedGaussian(nn.Module):
         moving = diag > 0  # a zero-variance axis is a Dirac: left out, like the angular priors
         safe = torch.where(moving.all(-1)[:, None, None], L, torch.eye(3, dtype=mu.dtype, device=mu.device))
         z = torch.linalg.solve_triangular(safe, (joints - mu)[..., None], upper=False)[..., 0]
-        per = -0.5 * z.square() - torch.log(torch.diagonal(safe, dim1=-2, dim2=-1)) - 0.5 * _LOG_2PI
+        per = -0.5 * z.square() - torch.log(torch.diagonal(safe, dim1=-2, dim2=-1)) - 0.5 * LOG_2PI
         per = torch.where(moving.all(-1)[:, None], per, torch.zeros_like(per))
         return per.sum((-1, -2))
 
-    def log_prob(self, x_new: Tensor, x_old: Tensor) -> Tensor:
+    def log_prob(self, x_new: Tensor, x_old: Tensor, *, extras=None) -> Tensor:
         """Embedding-space surrogate ``log N(F(x_new); F(x_old), Σ)``, ``(..., N)`` (class docstring)."""
         return self.log_prob_joints(self.skeleton.fk(x_new), x_old)
 

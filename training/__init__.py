@@ -3,6 +3,7 @@
 * :mod:`training.mocap`: ``load_bvh``, ``load_csv``, ``save_csv``, ``Motion``.
 * :mod:`training.synthetic`: the procedural motion generator (the embedded default data).
 * :mod:`training.fit`: ``fit_action_model`` / ``ActionModelFitter`` (Rius eq. 1-5).
+* :mod:`training.align`: resampling, period estimation, DTW and DBA (the synchronisation of Rius §2).
 """
 
 from importlib import import_module

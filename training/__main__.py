@@ -79,7 +79,8 @@ def _fit(args: argparse.Namespace) -> int:
 
     if args.out.suffix != ".npz":
         raise ValueError(f"--out must name a .npz file, got {str(args.out)!r}")
-    dof_names = Skeleton.from_urdf(args.skeleton).dof_names if args.skeleton else None
+    skeleton = Skeleton.from_urdf(args.skeleton) if args.skeleton else None
+    dof_names = skeleton.dof_names if skeleton is not None else None
     motions = []
     for path in tqdm(args.files, desc="reading", unit="file", disable=args.quiet or len(args.files) < 2):
         motion = load_csv(
@@ -101,7 +102,7 @@ def _fit(args: argparse.Namespace) -> int:
         alpha=args.alpha,
         validate=args.validate,
         progress=not args.quiet,
-    ).fit(motions)
+    ).fit(motions, skeleton=skeleton)
     model = fitter.model_
     model.save(args.out)
     rate = fitter.train_acceptance_  # how often eq. 6 accepts the training frames themselves

@@ -142,7 +142,9 @@ def main(argv: list[str] | None = None) -> int:
     # 2. the action model, trained from the CSV files
     walks = [load_csv(p) for p in csvs["walk"]]
     train, held_out = walks[:-1], walks[-1]
-    model = fit_action_model(train, n_components=args.components, action="walk")
+    # a training performer's body: its joint types say which DOFs are angles
+    performer = Skeleton.from_urdf(csvs["walk"][0].with_suffix(".urdf"))
+    model = fit_action_model(train, n_components=args.components, action="walk", skeleton=performer)
     model_path = out / "walk.npz"
     model.save(model_path)
     gen = torch.Generator().manual_seed(args.seed)

@@ -14,7 +14,8 @@ Recommended use::
 or ``python -m training fit --action walk --skeleton S.urdf --out walk.npz DATA/*.csv``; the sklearn-style
 :class:`ActionModelFitter` keeps the intermediate results (``coords_``, ``paths_``, ``pca_``, ...).
 
-**Steps** (all in float64 numpy; the performances are small):
+**Steps** (all in float64 numpy; the performances are small; resampling, period estimation, DTW and DBA live
+in :mod:`training.align`):
 
 1. *Frame rate.* Every performance is resampled (linear interpolation of its unwrapped angles) to the model's
    ``fps`` (default: the performances' common rate). σ_φ and α are per-frame quantities at this rate, so fit
@@ -69,16 +70,13 @@ from scipy.signal import lfilter
 from sklearn.decomposition import PCA
 from tqdm.auto import tqdm
 
-from priors.action import ActionModel, is_angular
+from priors.action import ActionModel, guess_revolute
+from training.align import PERIODIC_THRESHOLD, dba_update, dtw_align, estimate_period, initial_mean, resample
 from training.mocap import Motion
 
 #: Default ``exclude`` patterns (case-insensitive regular expressions searched in DOF names): the hand,
 #: finger and thumb channels, which glitch and flip in the CMU data.
 HAND_PATTERNS = ("hand", "finger", "thumb")
-
-#: Normalised-difference threshold under which a performance counts as periodic (YIN uses 0.1-0.2 on
-#: audio; mocap cycles repeat less exactly).
-PERIODIC_THRESHOLD = 0.35
 
 
 # ================================================================================================ helpers
@@ -113,130 +111,6 @@ def wrap_about(x: np.ndarray, center: np.ndarray, angular: np.ndarray) -> np.nda
     """``center + wrap(x - center)`` (wrap into ``[-π, π)``) on the ``angular`` columns of ``x (..., P)``."""
     wrapped = center + np.mod(x - center + math.pi, 2.0 * math.pi) - math.pi
     return np.where(angular, wrapped, x)
-
-
-def resample(values: np.ndarray, fps: float, new_fps: float) -> np.ndarray:
-    """Linear interpolation of ``values (T, D)`` sampled at ``fps`` onto the grid ``0, 1/new_fps, ...``
-    within the clip (unwrap angles first)."""
-    T = values.shape[0]
-    if math.isclose(fps, new_fps, rel_tol=1e-9) or T < 2:
-        return values.copy()
-    n = int(math.floor((T - 1) * new_fps / fps + 1e-9)) + 1
-    pos = np.arange(n) * (fps / new_fps)  # fractional source frame of each new frame
-    i0 = np.minimum(np.floor(pos).astype(int), T - 2)
-    w = (pos - i0)[:, None]
-    return (1.0 - w) * values[i0] + w * values[i0 + 1]
-
-
-def estimate_period(coords: np.ndarray, min_overlap: float = 0.2) -> tuple[int | None, float]:
-    """Period (frames) of a trajectory ``coords (T, D)`` and its normalised difference score.
-
-    ``d(τ) = mean_i ||z_{i+τ} - z_i||²`` is normalised YIN-style by its running mean,
-    ``d'(τ) = d(τ) / ((1/τ) Σ_{u<=τ} d(u))``; the period is the first local minimum of ``d'`` below
-    :data:`PERIODIC_THRESHOLD` (else the global minimum), searched over lags that leave at least
-    ``min_overlap · T`` (and 4) overlapping frames. Returns ``(None, inf)`` when the clip is too short.
-    """
-    T = coords.shape[0]
-    max_lag = T - max(4, int(math.ceil(min_overlap * T)))
-    if max_lag < 3:
-        return None, math.inf
-    d = np.array([np.mean(np.sum((coords[tau:] - coords[:-tau]) ** 2, 1)) for tau in range(1, max_lag + 1)])
-    cmnd = d * np.arange(1, max_lag + 1) / np.maximum(np.cumsum(d), 1e-300)
-    interior = np.flatnonzero((cmnd[1:-1] <= cmnd[:-2]) & (cmnd[1:-1] <= cmnd[2:])) + 1
-    below = [i for i in interior if cmnd[i] < PERIODIC_THRESHOLD]
-    i = below[0] if below else (int(interior[np.argmin(cmnd[interior])]) if len(interior) else None)
-    if i is None:
-        return None, math.inf
-    return i + 1, float(cmnd[i])
-
-
-def dtw_align(
-    coords: np.ndarray,
-    mean: np.ndarray,
-    *,
-    cyclic: bool,
-    max_step: int = 2,
-    max_stay: int = 1,
-) -> tuple[np.ndarray, float]:
-    """Slope-constrained DTW of a performance to a mean performance.
-
-    Args:
-        coords: ``(T, D)`` the performance in aSpace.
-        mean: ``(K, D)`` the mean performance ĝ.
-        cyclic: ĝ is one cycle (``k`` advances modulo ``K``; free start and end phase) or a whole
-            performance (path from ``k = 0`` at the first frame to ``k = K-1`` at the last).
-        max_step: largest advance of ``k`` from one frame to the next.
-        max_stay: most consecutive frames that keep the same ``k`` after the first.
-
-    Returns:
-        ``(path (T,) int, cost)``: the matched mean posture of each frame and the mean squared distance
-        ``(1/T) Σ_i ||coords_i - mean_{path_i}||²`` of the optimal path.
-
-    Raises:
-        ValueError: no path satisfies the constraints (acyclic, lengths differ by more than the slope allows).
-    """
-    T, K = coords.shape[0], mean.shape[0]
-    S = max_stay + 1
-    cost = (np.sum(coords**2, 1)[:, None] + np.sum(mean**2, 1)[None, :] - 2.0 * coords @ mean.T).clip(
-        min=0.0
-    )  # (T, K)
-    acc = np.full((K, S), np.inf)  # acc[k, s]: best cost of frame i at posture k after s stays
-    if cyclic:
-        acc[:, 0] = cost[0]
-    else:
-        acc[0, 0] = cost[0, 0]
-    from_step = np.zeros((T, K), dtype=np.int16)  # advance a of the best entry into (i, k, s=0)
-    from_stay = np.zeros((T, K), dtype=np.int16)  # stay count s' of its predecessor (i-1, k-a, s')
-    steps = np.arange(1, max_step + 1)
-    ks = np.arange(K)
-    for i in range(1, T):
-        best_s = acc.argmin(1)
-        best = acc[ks, best_s]  # (K,)
-        src = ks[None, :] - steps[:, None]  # (A, K) predecessor postures
-        if cyclic:
-            src = src % K
-            cand = best[src]
-        else:
-            cand = np.where(src >= 0, best[src.clip(min=0)], np.inf)
-        a = cand.argmin(0)
-        new = np.empty_like(acc)
-        new[:, 0] = cand[a, ks] + cost[i]
-        new[:, 1:] = acc[:, :-1] + cost[i][:, None]
-        from_step[i] = steps[a]
-        from_stay[i] = best_s[src[a, ks]]
-        acc = new
-    if cyclic:
-        k, s = np.unravel_index(int(np.argmin(acc)), acc.shape)
-    else:
-        k, s = K - 1, int(np.argmin(acc[K - 1]))
-    total = acc[k, s]
-    if not np.isfinite(total):
-        raise ValueError(
-            f"no alignment of a {T}-frame performance to a {K}-posture mean within the slope constraints "
-            f"(max_step={max_step}, max_stay={max_stay}); trim the performances or relax the constraints"
-        )
-    path = np.empty(T, dtype=np.int64)
-    path[T - 1] = k
-    for i in range(T - 1, 0, -1):
-        if s > 0:
-            s -= 1
-        else:
-            k, s = (k - int(from_step[i, k])) % K, int(from_stay[i, k])
-        path[i - 1] = k
-    return path, float(total) / T
-
-
-def _fill_missing(values: np.ndarray, counts: np.ndarray, cyclic: bool) -> np.ndarray:
-    """Interpolate rows of ``values (K, D)`` whose ``counts`` are 0 from the rows that have data."""
-    have = np.flatnonzero(counts > 0)
-    if len(have) == len(counts):
-        return values
-    K = len(counts)
-    out = values.copy()
-    missing = np.flatnonzero(counts == 0)
-    for d in range(values.shape[1]):
-        out[missing, d] = np.interp(missing, have, values[have, d], period=K if cyclic else None)
-    return out
 
 
 def _smooth_over_postures(values: np.ndarray, width: float, cyclic: bool) -> np.ndarray:
@@ -402,12 +276,17 @@ class ActionModelFitter:
         return out
 
     # ------------------------------------------------------------------------------------------ fit
-    def fit(self, performances: Sequence[Motion]) -> ActionModelFitter:
-        """Learn the model from ``performances`` (``R`` Motions with the same DOFs); returns ``self``."""
+    def fit(self, performances: Sequence[Motion], *, skeleton=None) -> ActionModelFitter:
+        """Learn the model from ``performances`` (``R`` Motions with the same DOFs); returns ``self``.
+
+        ``skeleton`` (the performances' :class:`torchpf.Skeleton`) says which DOFs are angles
+        (``skeleton.dof_revolute``, stored in the model); without one, DOF names decide
+        (:func:`priors.action.guess_revolute`).
+        """
         self._check_config()
         motions = self._check_performances(performances)
         names = list(motions[0].dof_names)
-        angular_full = np.array([is_angular(n) for n in names])
+        angular_full = self._revolute(names, skeleton)
         fps = float(self.fps) if self.fps is not None else float(np.median([m.fps for m in motions]))
 
         # 1. unwrap along time, then resample (interpolating wrapped angles across ±π would be wrong)
@@ -452,7 +331,7 @@ class ActionModelFitter:
         else:
             K = int(round(float(np.median([len(z) for z in coords]))))
         K = max(K, 2)
-        mean = self._initial_mean(coords, periods, K, bool(cyclic))
+        mean = initial_mean(coords, periods, K, bool(cyclic))
         paths, costs, converged, prev = [], [], False, None
         bar = tqdm(range(int(self.max_iter)), desc=f"synchronising {self.action}", disable=not self.progress)
         for _ in bar:
@@ -466,7 +345,7 @@ class ActionModelFitter:
             if prev is not None and all(np.array_equal(p, q) for p, q in zip(paths, prev, strict=True)):
                 converged = True  # same alignment, hence same mean: a fixed point of DBA
                 break
-            mean = self._update_mean(coords, paths, mean, bool(cyclic))
+            mean = dba_update(coords, paths, mean, bool(cyclic))
             prev = paths
         bar.close()
 
@@ -529,7 +408,7 @@ class ActionModelFitter:
             action=self.action,
             cyclic=bool(cyclic),
             n_sigma=self.n_sigma,
-            angular=angular.tolist(),
+            revolute=angular_full,
             explained_variance=pca.explained_variance_,
             explained_variance_ratio=pca.explained_variance_ratio_,
             training={
@@ -550,58 +429,31 @@ class ActionModelFitter:
             params = {**self.get_params(), "fps": fps, "cyclic": bool(cyclic), "validate": False}
             rates = []
             for r in tqdm(range(len(motions)), desc="validating", disable=not self.progress):
-                sub = ActionModelFitter(**params).fit(motions[:r] + motions[r + 1 :]).model_
+                sub = (
+                    ActionModelFitter(**params).fit(motions[:r] + motions[r + 1 :], skeleton=skeleton).model_
+                )
                 frames = torch.from_numpy(full[r])  # unwrapped and resampled: the model wraps it itself
                 rates.append(float(sub.accept_probability(frames).mean()))
             self.validation_acceptance_ = np.array(rates)
         return self
+
+    @staticmethod
+    def _revolute(names: Sequence[str], skeleton) -> np.ndarray:
+        """``(D_full,)`` bool: which of the performances' DOFs ``names`` are angles."""
+        if skeleton is None:
+            return np.array(guess_revolute(names))
+        missing = sorted(set(names) - set(skeleton.dof_names))
+        if missing:
+            raise ValueError(f"the performances have DOFs the skeleton lacks: {missing[:5]}")
+        revolute = skeleton.dof_revolute.tolist()
+        index = {n: i for i, n in enumerate(skeleton.dof_names)}
+        return np.array([revolute[index[n]] for n in names])
 
     def _align(self, z: np.ndarray, mean: np.ndarray, cyclic: bool, label: str) -> tuple[np.ndarray, float]:
         try:
             return dtw_align(z, mean, cyclic=cyclic, max_step=self.max_step, max_stay=self.max_stay)
         except ValueError as e:
             raise ValueError(f"{label}: {e}") from None
-
-    def _initial_mean(self, coords: list[np.ndarray], periods, K: int, cyclic: bool) -> np.ndarray:
-        """ĝ before DBA: a cycle folded from the most typical periodic performance, or the most typical
-        performance resampled to ``K`` frames (acyclic)."""
-        if cyclic:
-            cands = [(abs(p - K), i) for i, (p, _) in enumerate(periods) if p is not None]
-            r = min(cands)[1] if cands else int(np.argmax([len(z) for z in coords]))
-            z = coords[r]
-            period = periods[r][0] or len(z)
-            bins = np.floor((np.arange(len(z)) / period % 1.0) * K).astype(int) % K
-            sums = np.zeros((K, z.shape[1]))
-            np.add.at(sums, bins, z)
-            counts = np.bincount(bins, minlength=K)
-            return _fill_missing(sums / np.maximum(counts, 1)[:, None], counts, True)
-        r = int(np.argmin([abs(len(z) - K) for z in coords]))
-        return resample(coords[r], 1.0, (K - 1) / max(len(coords[r]) - 1, 1))[:K]
-
-    @staticmethod
-    def _update_mean(coords, paths, mean: np.ndarray, cyclic: bool) -> np.ndarray:
-        """DBA update: each ĝ_k is the mean of the frames matched to it.
-
-        A posture that a path skips (an advance of 2 or more between frames ``i-1`` and ``i``) gets the
-        linear interpolation of those two frames at its place, as classic DTW would match it to one of
-        them: without it, postures that faster performances skip are averaged over fewer performances and
-        the mean gets kinks there. Postures nobody matched are interpolated along ĝ.
-        """
-        K = mean.shape[0]
-        sums = np.zeros_like(mean)
-        counts = np.zeros(K)
-        for z, p in zip(coords, paths, strict=True):
-            np.add.at(sums, p, z)
-            counts += np.bincount(p, minlength=K)
-            step = np.diff(p) % K if cyclic else np.diff(p)
-            for gap in range(2, int(step.max(initial=0)) + 1):
-                i = np.flatnonzero(step == gap) + 1  # frames reached by a jump of `gap` postures
-                for s in range(1, gap):
-                    k = (p[i - 1] + s) % K
-                    w = s / gap
-                    np.add.at(sums, k, (1.0 - w) * z[i - 1] + w * z[i])
-                    counts += np.bincount(k, minlength=K)
-        return _fill_missing(sums / np.maximum(counts, 1)[:, None], counts, cyclic)
 
     # ------------------------------------------------------------------------------------------ after fit
     def align(self, performance: Motion) -> np.ndarray:
@@ -610,7 +462,7 @@ class ActionModelFitter:
             raise RuntimeError("ActionModelFitter: call fit() first")
         m = performance if performance.dof_names == self.dof_names_ else performance.select(self.dof_names_)
         a = m.angles.detach().to("cpu", torch.float64).numpy().copy()
-        ang = np.array([is_angular(n) for n in self.dof_names_])
+        ang = self.model_.revolute.numpy()
         a[:, ang] = np.unwrap(a[:, ang], axis=0)
         a = resample(a, m.fps, self.fps_)
         z = self.model_.project(torch.from_numpy(a)).numpy()
@@ -638,15 +490,19 @@ class ActionModelFitter:
         }
 
 
-def fit_action_model(motions: Sequence[Motion], n_components: int | float = 13, **options) -> ActionModel:
+def fit_action_model(
+    motions: Sequence[Motion], n_components: int | float = 13, *, skeleton=None, **options
+) -> ActionModel:
     """Fit an action model to performances of one action: ``ActionModelFitter(...).fit(motions).model_``.
 
     Args:
         motions: ``R`` performances (Motions with the same DOF names; any lengths and frame rates).
         n_components: aSpace dimension ``D`` (Rius: 13) or the fraction of variance to keep.
+        skeleton: the performances' skeleton: its ``dof_revolute`` says which DOFs are angles (default:
+            their names, :func:`priors.action.guess_revolute`).
         **options: any other :class:`ActionModelFitter` option (``action``, ``fps``, ``cyclic``, ...).
 
     Returns:
         the :class:`~priors.action.ActionModel` (save it with ``.save(path)``).
     """
-    return ActionModelFitter(n_components=n_components, **options).fit(motions).model_
+    return ActionModelFitter(n_components=n_components, **options).fit(motions, skeleton=skeleton).model_

@@ -238,6 +238,7 @@ def generate(
         style = sample_style(action, gen)
     joints, _ = build.human_joints()
     names = [d.name for j in joints for d in j.dofs]
+    prismatic = {d.name for j in joints for d in j.dofs if d.type == "prismatic"}  # tracks in metres
     lower = torch.tensor([d.lower for j in joints for d in j.dofs], dtype=torch.float64)
     upper = torch.tensor([d.upper for j in joints for d in j.dofs], dtype=torch.float64)
     t = torch.arange(n_frames, dtype=torch.float64) / fps
@@ -249,7 +250,7 @@ def generate(
     index = {n: i for i, n in enumerate(names)}
     for dof, track in tracks.items():
         i = index[dof]
-        if dof.endswith("position"):
+        if dof in prismatic:
             angles[:, i] = track
         else:
             angles[:, i] = torch.deg2rad(track + style.posture.get(dof, 0.0) + noise[:, i])

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import zipfile
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -12,6 +13,7 @@ import torch
 
 from priors.action import ActionConstrained, ActionModel, ActionModelFormatError
 from priors.motion import ConstantVelocity
+from torchpf.distributions import Dynamics
 from torchpf.filters import ParticleFilter
 
 NAMES = ["Hips_Xposition", "Hips_Zrotation", "Knee_Xrotation", "Elbow_Xrotation", "Hand_Xrotation"]
@@ -243,18 +245,25 @@ def test_failed_save_keeps_the_old_file(tmp_path, monkeypatch):
 def test_action_constrained_follows_the_stateful_protocol_and_reports_acceptance():
     model = tiny_model()
     dyn = ActionConstrained(model, alpha=0.5)
-    assert callable(dyn.update_extras)  # Dynamics subclass once priors adopt the base
+    assert isinstance(dyn, Dynamics) and callable(dyn.update_extras)
     assert isinstance(dyn.dynamics, ConstantVelocity) and dyn.dynamics.alpha == 0.5
     x = near_mean_poses(model, 400, 0.03).reshape(2, 200, len(NAMES))
     extras = dyn.init_extras(x)
+    assert extras["accepted"].shape == (2, 200) and extras["accepted"].dtype == torch.bool
     out, stats = dyn.sample_with_stats(x, torch.Generator().manual_seed(0), extras=extras)
     assert out.shape == x.shape and torch.isfinite(out).all()
-    assert set(stats) == {"accepted", "accepted_first", "tries"} and stats["accepted"].shape == (2,)
-    assert (stats["accepted"] >= stats["accepted_first"]).all() and (stats["accepted"] > 0.95).all()
-    assert (stats["tries"] >= 1).all()
+    assert set(stats) == {"accepted", "accepted_first", "tries"}
+    assert all(v.shape == (2, 200) for v in stats.values()) and stats["accepted"].dtype == torch.bool
+    accepted, first = stats["accepted"].float().mean(-1), stats["accepted_first"].float().mean(-1)
+    assert (accepted >= first).all() and (accepted > 0.95).all()
+    assert (stats["tries"] >= 1).all() and (stats["tries"][stats["accepted_first"]] == 1).all()
     # accepted particles are ones eq. 6 can accept; the prediction moved them by ~sigma_phi only
-    assert (model.accept_probability(out) > 0).float().mean() >= stats["accepted"].min() - 1e-9
+    assert (model.accept_probability(out)[stats["accepted"]] > 0).all()
     assert (out - x).abs().max() < 0.2
+    # the per-particle extra of the final particles says the same
+    new = dyn.update_extras(out, x, extras)
+    assert set(new) == {"velocity", "accepted"} and (new["accepted"] | ~stats["accepted"]).all()
+    assert not hasattr(dyn, "stats")  # nothing of a call is kept on the module
 
 
 def test_action_constrained_retries_are_bounded():
@@ -262,7 +271,7 @@ def test_action_constrained_retries_are_bounded():
     dyn = ActionConstrained(model, max_tries=3)
     x = near_mean_poses(model, 50, 0.3)
     out, stats = dyn.sample_with_stats(x, torch.Generator().manual_seed(0), extras=dyn.init_extras(x))
-    assert stats["accepted"] == 0 and stats["tries"] == 3
+    assert not stats["accepted"].any() and (stats["tries"] == 3).all()
     assert torch.isfinite(out).all()  # the last draws are kept
 
 
@@ -290,5 +299,79 @@ def test_action_constrained_runs_in_a_particle_filter():
     assert state.extras["velocity"].shape == (300, len(NAMES))
     for _ in range(4):
         state = pf.step(state, truth, g)
-        assert 0 < float(dyn.stats["accepted_first"]) <= float(dyn.stats["accepted"]) <= 1
+        accepted = state.extras["accepted"]  # rides with the particles (gathered at resampling)
+        assert accepted.shape == (300,) and accepted.dtype == torch.bool
+        assert 0.5 < float(accepted.float().mean()) <= 1
     assert torch.isfinite(state.mean()).all() and state.ess() > 1
+
+
+# ----------------------------------------------------------------------------------- revolute DOFs
+
+
+def test_the_revolute_mask_decides_what_is_wrapped_and_is_saved(tmp_path):
+    # "Knee_Xrotation" made a length: the name rule would call it an angle, the mask says otherwise
+    revolute = [False, True, False, True, True]
+    model = tiny_model(revolute=revolute)
+    assert model.angular.tolist() == [False, True, True] and model.revolute.tolist() == revolute
+    theta = near_mean_poses(model, 5, 0.0)
+    turned = theta.clone()
+    turned[:, 2] += 2 * math.pi
+    assert not torch.allclose(model.project(turned), model.project(theta))  # a length is never wrapped
+    model.save(tmp_path / "m.npz")
+    back = ActionModel.load(tmp_path / "m.npz")
+    assert back.revolute.tolist() == revolute
+    reordered = ActionModel.load(tmp_path / "m.npz", dof_names=NAMES[::-1])
+    assert reordered.revolute.tolist() == revolute[::-1]
+    with np.load(tmp_path / "m.npz") as npz:
+        assert npz["revolute"].dtype == bool
+        assert __import__("json").loads(str(npz["metadata"]))["version"] == 2
+
+
+def test_version_1_files_load_with_the_name_rule_and_a_warning(tmp_path):
+    model = tiny_model()
+    model.save(tmp_path / "m.npz")
+    with np.load(tmp_path / "m.npz") as npz:
+        arrays = {k: npz[k] for k in npz.files if k != "revolute"}
+    meta = __import__("json").loads(str(arrays["metadata"]))
+    meta.update(version=1, angular=[True, True, True])  # what version 1 wrote
+    arrays["metadata"] = np.array(__import__("json").dumps(meta))
+    np.savez(tmp_path / "old.npz", **arrays)
+    with pytest.warns(UserWarning, match=r"old\.npz: action-model format version 1 stores no revolute mask"):
+        old = ActionModel.load(tmp_path / "old.npz")
+    assert old.revolute.tolist() == [False, True, True, True, True]
+    theta = near_mean_poses(model, 10, 0.1)
+    torch.testing.assert_close(old.project(theta), model.project(theta))
+    with np.load(tmp_path / "old.npz") as npz:  # a version-2 file without the mask is malformed
+        arrays = {k: npz[k] for k in npz.files}
+    arrays["metadata"] = np.array(__import__("json").dumps({**meta, "version": 2}))
+    np.savez(tmp_path / "bad.npz", **arrays)
+    with pytest.raises(ActionModelFormatError, match=r"missing entries \['revolute'\]"):
+        ActionModel.load(tmp_path / "bad.npz")
+
+
+def test_action_constrained_with_a_skeleton_checks_its_joint_types():
+    model = tiny_model()
+    skel = SimpleNamespace(dof_names=NAMES[::-1], dof_revolute=torch.tensor([True, True, True, True, False]))
+    dyn = ActionConstrained(model, skeleton=skel)
+    assert dyn.model.dof_names == NAMES[::-1]  # in the skeleton's pose layout
+    wrong = SimpleNamespace(dof_names=NAMES, dof_revolute=torch.tensor([False, True, False, True, True]))
+    with pytest.raises(ValueError, match=r"Knee_Xrotation.*refit"):
+        ActionConstrained(model, skeleton=wrong)
+
+
+def test_action_constrained_adapts_a_duck_typed_dynamics_once():
+    class Walk:  # plain object: sample(x, generator) / log_prob(new, old), no extras
+        def sample(self, x, generator=None):
+            return x + 0.01 * torch.randn(x.shape, generator=generator, dtype=x.dtype)
+
+        def log_prob(self, x_new, x_old):
+            return torch.zeros(x_new.shape[:-1], dtype=x_new.dtype)
+
+    model = tiny_model()
+    dyn = ActionConstrained(model, Walk())
+    x = near_mean_poses(model, 20, 0.02)
+    extras = dyn.init_extras(x)
+    assert set(extras) == {"accepted"}
+    out = dyn.sample(x, torch.Generator().manual_seed(0), extras=extras)
+    assert out.shape == x.shape
+    torch.testing.assert_close(dyn.log_prob(out, x, extras=extras), model.accept_probability(out).log())

@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from priors.motion import ConstantVelocity, DampedSecondOrder
+from torchpf.distributions import Dynamics
 from torchpf.filters import ParticleFilter
 
 # ----------------------------------------------------------------------------------- velocity dynamics
@@ -15,7 +16,7 @@ from torchpf.filters import ParticleFilter
 
 def test_constant_velocity_is_stateful_dynamics():
     cv = ConstantVelocity(0.1)
-    assert callable(cv.update_extras)  # Dynamics subclass once priors adopt the base
+    assert isinstance(cv, Dynamics) and callable(cv.update_extras)
     x0 = torch.randn(3, 7, 4)
     assert cv.init_extras(x0)["velocity"].shape == (3, 7, 4)
     assert torch.equal(cv.init_extras(x0)["velocity"], torch.zeros(3, 7, 4))
@@ -140,7 +141,8 @@ def test_constant_velocity_in_a_particle_filter_carries_velocity():
 import numpy as np  # noqa: E402
 from scipy import stats  # noqa: E402
 
-from priors.motion import AngularRandomWalk, ProjectedGaussian, table5_sigma  # noqa: E402
+from priors.motion import AngularRandomWalk, ProjectedGaussian  # noqa: E402
+from priors.table5 import table5_sigma  # noqa: E402
 from torchpf import Skeleton  # noqa: E402
 from torchpf.assets import path  # noqa: E402
 
@@ -148,19 +150,6 @@ from torchpf.assets import path  # noqa: E402
 @pytest.fixture(scope="module")
 def f22():
     return Skeleton.from_urdf(path("fontmarty22.urdf"))
-
-
-def test_fontmarty_table5_groups(human, f22):
-    s = dict(zip(human.dof_names, table5_sigma(human).tolist(), strict=True))
-    assert s["Hips_Xposition"] == 0.07 and s["Hips_Zrotation"] == 0.05
-    assert s["LeftArm_Xrotation"] == 0.1 and s["RightForeArm_Zrotation"] == 0.3
-    assert s["LeftUpLeg_Yrotation"] == 0.1 and s["RightLeg_Xrotation"] == 0.1
-    assert s["Spine_Xrotation"] == 0.05 and s["LeftHand_Xrotation"] == 0.1  # outside the table
-    f = dict(zip(f22.dof_names, table5_sigma(f22).tolist(), strict=True))
-    assert f["pelvis_tx"] == 0.07 and f["pelvis_rz"] == 0.05 and f["l_elbow_rx"] == 0.3
-    assert f["r_shoulder_ry"] == 0.1 and f["l_hip_rz"] == 0.1 and f["r_knee_rx"] == 0.1
-    # variance of a random walk grows linearly with time: 20 Hz steps have half the 5 Hz std
-    torch.testing.assert_close(table5_sigma(f22, fps=20.0), table5_sigma(f22) / 2)
 
 
 LO, HI, MU, SIG = -0.5, 0.3, 0.1, 0.4
@@ -296,3 +285,26 @@ def test_priors_follow_the_particles_device():
     assert z.device.type == "cuda"
     p = ProjectedGaussian(f22, 0.03).sample(x, g)
     assert p.device.type == "cuda" and f22.within_limits(p).all()
+
+
+def test_every_prior_is_a_dynamics_with_one_signature(human):
+    from priors.motion import ConstantVelocity, DampedSecondOrder
+    from torchpf.distributions import Dynamics
+
+    x = human.clamp(torch.zeros(2, 3, len(human.dof_names), dtype=torch.float64))
+    priors = (
+        AngularRandomWalk.from_skeleton(human),
+        AngularRandomWalk(0.1, limits="none"),
+        ConstantVelocity(0.1),
+        DampedSecondOrder(0.1),
+        ProjectedGaussian(human, 0.03),
+    )
+    for prior in priors:
+        assert isinstance(prior, Dynamics)
+        g = torch.Generator().manual_seed(0)
+        extras = prior.init_extras(x)
+        y = prior.sample(x, g, extras=extras)
+        assert y.shape == x.shape and prior.log_prob(y, x, extras=extras).shape == (2, 3)
+        eps = torch.randn(2, 3, prior.noise_size(x.shape[-1]), generator=g, dtype=x.dtype)
+        assert prior.sample_from_noise(x, eps, extras=extras).shape == x.shape
+        assert set(prior.update_extras(y, x, extras)) == set(extras)

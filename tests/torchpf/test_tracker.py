@@ -179,7 +179,7 @@ def test_public_name():
 
 
 def test_named_prior_gets_the_frame_rate(scene):
-    from priors.factories import table5_sigma
+    from priors.table5 import table5_sigma
 
     skel, cams, _, _ = scene
     tracker = Tracker(

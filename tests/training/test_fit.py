@@ -13,13 +13,8 @@ import torch
 from torchpf.assets import path as asset_path
 from torchpf.skeleton import Skeleton
 from training import ActionModelFitter, fit_action_model
-from training.fit import (
-    constant_velocity_errors,
-    dtw_align,
-    estimate_period,
-    resample,
-    select_posture_dofs,
-)
+from training.align import resample
+from training.fit import constant_velocity_errors, select_posture_dofs
 from training.mocap import CMU_SCALE, Motion, bvh_motion, read_bvh
 from training.synthetic import PerformerStyle, generate
 
@@ -54,38 +49,6 @@ def test_posture_dofs_leave_out_root_and_hands():
     assert not [n for n in posture if any(k in n.lower() for k in ("hand", "finger", "thumb"))]
     assert "LeftUpLeg_Xrotation" in posture and "LeftForeArm_Zrotation" in posture and len(posture) == 66
     assert len(select_posture_dofs(names, exclude_root=False, exclude=())) == 96
-
-
-def test_resample_is_linear_interpolation():
-    t = np.arange(13) / 120.0
-    values = np.stack([3 * t + 1, -t], 1)
-    out = resample(values, 120.0, 30.0)
-    np.testing.assert_allclose(out, np.stack([3 * t[::4] + 1, -t[::4]], 1), atol=1e-12)
-    np.testing.assert_allclose(resample(values, 120.0, 240.0)[1], (values[0] + values[1]) / 2)
-
-
-def test_estimate_period_of_a_noisy_cycle():
-    rng = np.random.default_rng(0)
-    t = np.arange(150)
-    z = np.stack([np.sin(2 * np.pi * t / 37), np.cos(4 * np.pi * t / 37)], 1) + 0.05 * rng.normal(
-        size=(150, 2)
-    )
-    period, score = estimate_period(z)
-    assert period == 37 and score < 0.2
-    assert estimate_period(np.cumsum(rng.normal(size=(150, 2)), 0))[1] > 0.35  # a random walk is not periodic
-
-
-def test_dtw_recovers_an_exact_subsequence_of_a_cycle():
-    K = 20
-    mean = np.stack([np.cos(2 * np.pi * np.arange(K) / K), np.sin(2 * np.pi * np.arange(K) / K)], 1)
-    truth = (7 + np.array([0, 1, 1, 2, 4, 5, 6, 8, 9, 10, 10, 11, 13, 15, 16, 17, 18, 19, 20, 22])) % K
-    path, cost = dtw_align(mean[truth], mean, cyclic=True)
-    np.testing.assert_array_equal(path, truth)
-    assert cost == pytest.approx(0.0, abs=1e-12)
-    path, _ = dtw_align(mean[:K], mean, cyclic=False)
-    np.testing.assert_array_equal(path, np.arange(K))
-    with pytest.raises(ValueError, match="no alignment"):
-        dtw_align(mean[:5], mean, cyclic=False)  # 5 frames cannot cover 20 postures with steps <= 2
 
 
 def test_alpha_and_sigma_phi_recover_the_generating_process():
@@ -226,6 +189,18 @@ def test_fit_action_model_returns_a_model_with_the_contract_api(tmp_path):
     theta = train[0].angles
     assert back.accepts(theta).shape == (90,)
     assert math.isclose(back.alpha, model.alpha) and back.action == "walk"
+
+
+def test_fit_with_a_skeleton_takes_its_joint_types():
+    train = [generate("walk", 60, 30.0, seed=k) for k in range(2)]
+    skel = Skeleton.from_urdf(asset_path("human.urdf"))
+    model = fit_action_model(train, n_components=4, action="walk", skeleton=skel)
+    index = [skel.dof_names.index(n) for n in model.dof_names]
+    assert model.revolute.tolist() == skel.dof_revolute[index].tolist()
+    by_name = fit_action_model(train, n_components=4, action="walk")  # the name rule agrees on human.urdf
+    torch.testing.assert_close(model.mean_performance, by_name.mean_performance)
+    with pytest.raises(ValueError, match="DOFs the skeleton lacks"):
+        fit_action_model(train, n_components=4, skeleton=Skeleton.from_urdf(asset_path("fontmarty22.urdf")))
 
 
 def test_leave_one_out_validation_exposes_too_many_components():
