@@ -1,7 +1,7 @@
 """High-level tracker: skeleton + likelihood(s) + motion prior + particle filter in one ``nn.Module``.
 
 ``Tracker`` assembles the pieces from keyword arguments (or a small YAML/dict config) and runs them on a
-sequence: a sequence directory of DESIGN.md, a :class:`~torchpf.synth.SequenceData` in memory, or a list of
+sequence: a sequence directory of DESIGN.md, a :class:`~torchpf.sequence.SequenceData` in memory, or a list of
 :class:`~torchpf.observations.Frame` s. The result is an estimated motion (mocap-CSV-able), per-frame ESS,
 the log-evidence and per-frame failure flags.
 
@@ -451,7 +451,7 @@ class Tracker(nn.Module):
         """Track a sequence.
 
         Args:
-            sequence: a sequence directory (path), a :class:`~torchpf.synth.SequenceData`, or a list of
+            sequence: a sequence directory (path), a :class:`~torchpf.sequence.SequenceData`, or a list of
                 per-frame observations (:class:`~torchpf.observations.Frame` or whatever the likelihood
                 takes).
             init: (D,) initial pose; default the sequence's first ground-truth frame.
@@ -461,7 +461,7 @@ class Tracker(nn.Module):
         Returns:
             :class:`TrackResult`.
         """
-        from torchpf.synth import SequenceData, read_sequence
+        from torchpf.sequence import SequenceData, read_sequence
 
         if isinstance(sequence, str | os.PathLike):
             sequence = read_sequence(sequence)
