@@ -160,7 +160,7 @@ def read_sequence(path) -> SequenceData:
     """Read a sequence directory (module docstring). The frame count is the largest frame index found in
     ``masks/``, ``points/`` or ``truth.csv``; a missing mask or point file reads as None. A
     ``video/<camera>.mp4`` without masks is not segmented here: use
-    :func:`torchpf.observations.silhouettes_from_video`.
+    :func:`torchpf.sensors.silhouettes_from_video`.
     """
     import cv2
 

@@ -65,7 +65,7 @@ def render_silhouette(skeleton, theta, camera: Camera, height: int | None = None
 
 def render_depth(skeleton, theta, camera: Camera, height: int | None = None, width: int | None = None):
     """Depth image of the body: (H, W) z-depth (m) along ``camera``'s optical axis, 0 where no capsule is hit.
-    Matches the input convention of :func:`torchpf.observations.depth_to_points`."""
+    Matches the input convention of :func:`torchpf.sensors.depth_to_points`."""
     a, b, r = _bone_ends(skeleton, torch.as_tensor(theta, dtype=torch.float64))
     H, W = height or camera.height, width or camera.width
     t = _ray_hits(camera, a, b, r, H, W)

@@ -7,7 +7,8 @@ import torch
 
 from torchpf.camera import camera_ring, look_at
 from torchpf.geometry import capsule_distance, capsule_masks, project_capsules
-from torchpf.observations import Frame, depth_to_points
+from torchpf.observations import Frame
+from torchpf.sensors import depth_to_points
 from torchpf.synth import SynthOptions, render_depth, render_silhouette, synthesize
 
 W, H = 160, 120
