@@ -23,8 +23,9 @@ terms add, annealing exponents multiply, and the filter normalises with ``logsum
 
 ``obs`` is the container named above (:mod:`torchpf.observations`) or a
 :class:`~torchpf.observations.Frame` holding it; a missing container (None) or camera contributes 0.
-Image terms work in the observation's pixel grid: masks may be smaller than the camera images (the
-cameras' pixel coordinates are rescaled), which is how 640x480 cameras are scored on 160x120 masks.
+Image terms hold their cameras as a :class:`~torchpf.camera.CameraRig` (buffers that move with ``.to()``) and
+work in the observation's pixel grid: masks may be smaller than the camera images (the rig is
+:meth:`~torchpf.camera.CameraRig.resized` to them), which is how 640x480 cameras are scored on 160x120 masks.
 
 Sampling: the model points of the silhouette cues come from a **fixed quasi-random pattern**
 (:func:`torchpf.geometry.sample_pattern`) mapped into every projected capsule, and the dual cue uses
@@ -54,6 +55,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from torchpf.camera import CameraRig
 from torchpf.geometry import (
     Capsules2D,
     capsule_coverage,
@@ -213,43 +215,20 @@ class PointCloudLikelihood(Likelihood):
         return -ssq / (2 * self.sigma**2)
 
 
-# ---------------------------------------------------------------------- cameras in buffers
-class _CameraView:
-    """A camera read from a likelihood's buffers at the working dtype/device (for ``project_capsules``)."""
-
-    def __init__(self, K, R, t, dist, focal):
-        self.K, self.R, self.t, self.dist, self.focal = K, R, t, dist, focal
-
-    def project(self, X):
-        from torchpf.camera import project_points
-
-        return project_points(X, self.K, self.R, self.t, self.dist)
-
-    def to_camera(self, X):
-        return X @ self.R.T + self.t
-
-
+# ---------------------------------------------------------------------- image cues
 class _ImageLikelihood(Likelihood):
-    """Shared machinery of the image cues: camera buffers, projection into the observation's pixel grid,
-    bilinear look-ups."""
+    """Shared machinery of the image cues: the cameras (a :class:`~torchpf.camera.CameraRig`, its buffers
+    move with the module), projection into the observation's pixel grid, bilinear look-ups."""
 
     def __init__(self, skeleton, cameras, bones=None):
         super().__init__(skeleton, bones)
-        cams = list(cameras.values()) if isinstance(cameras, Mapping) else list(cameras)
-        if not cams:
+        self.cameras = CameraRig(cameras)  # the likelihood's own copy: moving it leaves the caller's alone
+        if not len(self.cameras):
             raise ValueError("at least one camera is needed")
-        self.camera_names = [c.name for c in cams]
-        self.sizes = [(c.width, c.height) for c in cams]
-        self.register_buffer("K", torch.stack([c.K for c in cams]).double())
-        self.register_buffer("R", torch.stack([c.R for c in cams]).double())
-        self.register_buffer("t", torch.stack([c.t for c in cams]).double())
-        dist = [c.dist if c.dist is not None else torch.zeros(5, dtype=torch.float64) for c in cams]
-        self.register_buffer("dist", torch.stack(dist).double())
-        self.has_dist = [c.dist is not None for c in cams]
 
     @property
     def n_cameras(self) -> int:
-        return len(self.sizes)
+        return len(self.cameras)
 
     def distances(self, theta: torch.Tensor, obs) -> torch.Tensor:
         """The per-camera distances ``D_l`` of the cue (its class docstring says what and in which units; 0
@@ -261,42 +240,11 @@ class _ImageLikelihood(Likelihood):
     def _distances(self, theta: torch.Tensor, obs) -> torch.Tensor:
         raise NotImplementedError(f"{type(self).__name__} has no per-camera distances")
 
-    def _camera(self, v: int, like: torch.Tensor) -> _CameraView:
-        kw = {"dtype": like.dtype, "device": like.device}
-        K = self.K[v].to(**kw)
-        return _CameraView(
-            K,
-            self.R[v].to(**kw),
-            self.t[v].to(**kw),
-            self.dist[v].to(**kw) if self.has_dist[v] else None,
-            0.5 * (K[0, 0] + K[1, 1]),
-        )
-
-    def _scale(self, v: int, height: int, width: int) -> tuple[float, float]:
-        W, H = self.sizes[v]
-        if W <= 0 or H <= 0:  # camera without a size: observation grid is the camera grid
-            return 1.0, 1.0
-        return width / W, height / H
-
-    def _caps2d(self, v: int, a, b, r, height: int, width: int) -> Capsules2D:
-        """Capsules projected into camera v, in the pixel frame of an ``height x width`` observation."""
-        caps = project_capsules(self._camera(v, a), a, b, r)
-        sx, sy = self._scale(v, height, width)
-        if sx == 1.0 and sy == 1.0:
-            return caps
-        s = caps.pa.new_tensor([sx, sy])
-        k = 0.5 * (sx + sy)
-        return Capsules2D(
-            (caps.pa + 0.5) * s - 0.5, (caps.pb + 0.5) * s - 0.5, caps.ra * k, caps.rb * k, caps.valid
-        )
-
-    def _project_points(self, v: int, X: torch.Tensor, height: int, width: int) -> torch.Tensor:
-        cam = self._camera(v, X)
-        uv = cam.project(X)
-        sx, sy = self._scale(v, height, width)
-        if sx != 1.0 or sy != 1.0:
-            uv = (uv + 0.5) * uv.new_tensor([sx, sy]) - 0.5
-        return uv
+    def _caps2d(self, a, b, r, height: int, width: int) -> list[Capsules2D]:
+        """Capsules (B, C) projected into each of the V cameras, in the pixel frame of a ``height x width``
+        observation (the cameras resized to it)."""
+        caps = project_capsules(self.cameras.resized(width, height), a, b, r)  # (B, V, C)
+        return caps.unbind(caps.valid.ndim - 2)
 
     def _check_cameras(self, n: int, what: str):
         if n != self.n_cameras:
@@ -377,23 +325,21 @@ class SilhouetteLikelihood(_ImageLikelihood):
         self.sigma, self.n_body, self.n_cap, self.blur = float(sigma), int(n_body), int(n_cap), float(blur)
         self.interpolation, self.union, self.generator = interpolation, bool(union), generator
 
-    def _model_points(self, v, a, b, r, H, W):
-        caps = self._caps2d(v, a, b, r, H, W)
+    def _model_points(self, caps: Capsules2D):
         pts, w = sample_in_capsules(caps, self.n_body, self.n_cap, generator=self.generator)
         if self.union:
             M = self.n_body + 2 * self.n_cap
             others = capsule_coverage(pts, caps, reduce="sum", exclude_own=M)
             w = w / (1.0 + others)
-        return caps, pts, w
+        return pts, w
 
     def _distances(self, theta, obs: Silhouettes):
         self._check_cameras(obs.masks.shape[0], "the observation")
         a, b, r = self._capsules(theta)
-        H, W = obs.height, obs.width
         images = obs.blurred(self.blur)
         out = []
-        for v in range(self.n_cameras):
-            _, pts, w = self._model_points(v, a, b, r, H, W)
+        for v, caps in enumerate(self._caps2d(a, b, r, obs.height, obs.width)):
+            pts, w = self._model_points(caps)
             inside = _lookup(images[v], pts, self.interpolation)
             total = w.sum(-1).clamp_min(1e-9)
             out.append(1.0 - (w * inside).sum(-1) / total)
@@ -438,14 +384,12 @@ class DualSilhouetteLikelihood(_ImageLikelihood):
     def _distances(self, theta, obs: Silhouettes):
         self._check_cameras(obs.masks.shape[0], "the observation")
         a, b, r = self._capsules(theta)
-        H, W = obs.height, obs.width
         fg, ok = obs.foreground_samples(self.n_samples)
         out = []
-        for v in range(self.n_cameras):
+        for v, caps in enumerate(self._caps2d(a, b, r, obs.height, obs.width)):
             if not bool(ok[v]):
                 out.append(a.new_zeros(a.shape[0]))
                 continue
-            caps = self._caps2d(v, a, b, r, H, W)
             cov = capsule_coverage(fg[v].to(a), caps, softness=self.softness)
             out.append(1.0 - cov.mean(-1))
         return torch.stack(out, -1)
@@ -508,12 +452,11 @@ class OverlapLikelihood(SilhouetteLikelihood):
     def _ratios(self, theta, obs: Silhouettes):
         self._check_cameras(obs.masks.shape[0], "the observation")
         a, b, r = self._capsules(theta)
-        H, W = obs.height, obs.width
         images = obs.blurred(self.blur)
         area = obs.area().to(a)
         out = []
-        for v in range(self.n_cameras):
-            _, pts, w = self._model_points(v, a, b, r, H, W)
+        for v, caps in enumerate(self._caps2d(a, b, r, obs.height, obs.width)):
+            pts, w = self._model_points(caps)
             inter = (w * _lookup(images[v], pts, self.interpolation)).sum(-1)
             union = w.sum(-1) + area[v] - inter
             out.append(inter / union.clamp_min(1e-9))
@@ -583,24 +526,21 @@ class Keypoints2DLikelihood(_ImageLikelihood):
         if obs.uv.shape[1] != len(self.joint_index):
             raise ValueError(f"obs has {obs.uv.shape[1]} points per camera, expected {len(self.joint_index)}")
         X = self._joints(theta)[:, self.joint_index]  # (B, J, 3)
-        total = X.new_zeros(X.shape[0])
+        rig = self.cameras if self.image_size is None else self.cameras.resized(*self.image_size)
+        uv = rig.project(X)  # (B, J, V, 2)
+        d2 = (uv - obs.uv.transpose(0, 1).to(uv)).square().sum(-1)  # (B, J, V)
         s2 = self.sigma**2
-        for v in range(self.n_cameras):
-            W, H = self.image_size or self.sizes[v]
-            uv = self._project_points(v, X, H, W)
-            d2 = (uv - obs.uv[v].to(uv)).square().sum(-1)  # (B, J)
-            if self.noise == "gaussian":
-                lp = -d2 / (2 * s2) - math.log(2 * math.pi * s2)
-            else:
-                nu = self.dof
-                lp = (
-                    math.lgamma((nu + 2) / 2)
-                    - math.lgamma(nu / 2)
-                    - math.log(nu * math.pi * s2)
-                    - (nu + 2) / 2 * torch.log1p(d2 / (nu * s2))
-                )
-            total = total + (lp * obs.visible[v].to(lp.device)).sum(-1)
-        return total
+        if self.noise == "gaussian":
+            lp = -d2 / (2 * s2) - math.log(2 * math.pi * s2)
+        else:
+            nu = self.dof
+            lp = (
+                math.lgamma((nu + 2) / 2)
+                - math.lgamma(nu / 2)
+                - math.log(nu * math.pi * s2)
+                - (nu + 2) / 2 * torch.log1p(d2 / (nu * s2))
+            )
+        return (lp * obs.visible.transpose(0, 1).to(lp.device)).sum((-1, -2))
 
 
 # ---------------------------------------------------------------------- distance images
@@ -658,10 +598,8 @@ class SkinBlobLikelihood(_ImageLikelihood):
         self._check_cameras(obs.distance.shape[0], "the observation")
         X = self.markers(theta)
         H, W = obs.distance.shape[-2:]
-        out = [
-            _distance_lookup(obs.distance[v], self._project_points(v, X, H, W)).mean(-1)
-            for v in range(len(obs.distance))
-        ]
+        uv = self.cameras.resized(W, H).project(X)  # (B, M, V, 2)
+        out = [_distance_lookup(obs.distance[v], uv[..., v, :]).mean(-1) for v in range(len(obs.distance))]
         return torch.stack(out, -1)
 
     def _log_lik(self, theta, obs: DistanceMaps, batch):
@@ -709,10 +647,9 @@ class ChamferLikelihood(_ImageLikelihood):
         H, W = obs.distance.shape[-2:]
         total = a.new_zeros(a.shape[0])
         M = 2 * self.n_side + 2 * self.n_cap
-        for v in range(self.n_cameras):
+        for v, caps in enumerate(self._caps2d(a, b, r, H, W)):
             if not bool(obs.valid[v]):
                 continue
-            caps = self._caps2d(v, a, b, r, H, W)
             pts, ok = outline_points(caps, self.n_side, self.n_cap)
             w = ok.to(a.dtype)
             if self.outline_only:

@@ -29,6 +29,7 @@ from dataclasses import dataclass
 
 import torch
 
+from torchpf.camera import CameraRig
 from torchpf.geometry.capsules import _chunk_rows
 
 __all__ = [
@@ -57,28 +58,39 @@ class Capsules2D:
     rb: torch.Tensor
     valid: torch.Tensor
 
+    def unbind(self, dim: int) -> list[Capsules2D]:
+        """Split along batch dim ``dim`` (>= 0, counted from the front): e.g. the V cameras of a rig
+        projection (..., V, C) with ``dim = len(...)``."""
+        fields = (self.pa, self.pb, self.ra, self.rb, self.valid)
+        return [Capsules2D(*parts) for parts in zip(*(f.unbind(dim) for f in fields), strict=True)]
+
 
 def project_capsules(camera, a: torch.Tensor, b: torch.Tensor, radius: torch.Tensor, near: float = 1e-2):
     """Project 3D capsules into a camera (Fontmarty et al. §3.2.1 "projected truncated cones").
 
     Args:
-        camera: :class:`torchpf.camera.Camera` (or any object with ``project``, ``to_camera``, ``focal``).
+        camera: a :class:`torchpf.camera.Camera`, or a :class:`torchpf.camera.CameraRig` of V cameras
+            projected into all at once.
         a, b: (..., C, 3) ends (m); radius: (C,) radii (m); near: minimum depth (m) of a valid end.
 
     Returns:
-        :class:`Capsules2D` with radii ``f r / (z sqrt(cos t))`` (pixels) at each end's depth ``z`` and
-        angle ``t`` off the optical axis: the perspective image of a sphere is an ellipse, this circle has
-        its area (exact on the optical axis).
+        :class:`Capsules2D` (..., C) for a camera, (..., V, C) for a rig, with radii ``f r / (z sqrt(cos t))``
+        (pixels) at each end's depth ``z`` and angle ``t`` off the optical axis: the perspective image of a
+        sphere is an ellipse, this circle has its area (exact on the optical axis).
     """
-    ends = torch.stack([a, b], -2)
+    ends = torch.stack([a, b], -2)  # (..., C, 2, 3)
     uv = camera.project(ends)
     xc = camera.to_camera(ends)
+    focal = camera.focal
+    if isinstance(camera, CameraRig):  # (..., C, 2, V, k) -> (..., V, C, 2, k)
+        uv, xc = uv.movedim(-2, -4), xc.movedim(-2, -4)
+        focal = camera.focal(xc)[:, None, None]
     z = xc[..., 2]
     r = radius.to(z)
     # A sphere at angle t off the optical axis images as an ellipse with semi-axes ~ f r / z (across) and
     # f r / (z cos t) (radially); the area-preserving circle has radius f r / (z sqrt(cos t)).
     zc = z.clamp_min(near)
-    rad = camera.focal * r.unsqueeze(-1) / zc * (xc.norm(dim=-1) / zc).sqrt()
+    rad = focal * r.unsqueeze(-1) / zc * (xc.norm(dim=-1) / zc).sqrt()
     valid = (z > near).all(-1)
     return Capsules2D(uv[..., 0, :], uv[..., 1, :], rad[..., 0], rad[..., 1], valid)
 

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchpf.camera import look_at
+from torchpf.camera import camera_ring, look_at
 from torchpf.geometry import (
     Capsules2D,
     capsule_coverage,
@@ -30,6 +30,21 @@ def test_project_capsules_radius_on_axis():
         cam, a - torch.tensor([0.0, 5.0, 0.0], dtype=torch.float64), b, caps.ra.new_tensor([0.1])
     )
     assert not bool(behind.valid.any())
+
+
+def test_project_capsules_into_a_rig():
+    rig = camera_ring(3, radius=4.0, width=160, height_px=120)
+    g = torch.Generator().manual_seed(0)
+    a = torch.randn(5, 4, 3, generator=g, dtype=torch.float64) * 0.3 + torch.tensor([0.0, 0.0, 1.0])
+    b = a + torch.randn(5, 4, 3, generator=g, dtype=torch.float64) * 0.2
+    r = torch.full((4,), 0.05, dtype=torch.float64)
+    caps = project_capsules(rig, a, b, r)
+    assert caps.pa.shape == (5, 3, 4, 2) and caps.ra.shape == (5, 3, 4)
+    for v, (cam, one) in enumerate(zip(rig.values(), caps.unbind(1), strict=True)):
+        ref = project_capsules(cam, a, b, r)
+        for x, y in zip((one.pa, one.pb, one.ra, one.rb), (ref.pa, ref.pb, ref.ra, ref.rb), strict=True):
+            torch.testing.assert_close(x, y, rtol=1e-12, atol=1e-9)
+        assert torch.equal(one.valid, ref.valid), v
 
 
 def cv2_capsule_mask(pa, pb, ra, rb, H, W, shift=8):
