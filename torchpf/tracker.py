@@ -47,7 +47,6 @@ from typing import Any
 import torch
 from torch import nn
 
-from torchpf import likelihoods as L
 from torchpf.filters import (
     AnnealedParticleFilter,
     MCMCParticleFilter,
@@ -55,16 +54,8 @@ from torchpf.filters import (
     PartitionedParticleFilter,
 )
 from torchpf.io import write_mocap_csv
+from torchpf.likelihoods import LIKELIHOODS, make_likelihood
 
-LIKELIHOODS: dict[str, type] = {
-    "silhouette": L.SilhouetteLikelihood,
-    "dual_silhouette": L.DualSilhouetteLikelihood,
-    "overlap": L.OverlapLikelihood,
-    "pointcloud": L.PointCloudLikelihood,
-    "keypoints": L.Keypoints2DLikelihood,
-    "chamfer": L.ChamferLikelihood,
-    "skin": L.SkinBlobLikelihood,
-}
 FILTERS = ("sir", "condensation", "qrs", "partitioned", "partitioned_qrs", "apf", "mcmc")
 DYNAMICS_GROUP = "torchpf.dynamics"
 
@@ -95,38 +86,6 @@ def make_dynamics(name: str, skeleton, **options) -> Any:
 
 def _spec_names(spec) -> list[str]:
     return [spec] if isinstance(spec, str) else list(spec)
-
-
-def make_likelihood(skeleton, cameras, spec, options: Mapping[str, Mapping] | None = None) -> nn.Module:
-    """A likelihood module from a name, a list of names or ``{name: weight}`` (weights of the log terms).
-
-    ``options[name]`` holds constructor keywords of that term (e.g. ``{"silhouette": {"sigma": 0.2}}``).
-    """
-    if isinstance(spec, nn.Module):
-        return spec
-    options = dict(options or {})
-    weights = (
-        {spec: 1.0}
-        if isinstance(spec, str)
-        else dict(spec)
-        if isinstance(spec, Mapping)
-        else {name: 1.0 for name in spec}
-    )
-    terms = {}
-    for name in weights:
-        if name not in LIKELIHOODS:
-            raise ValueError(f"unknown likelihood {name!r}; choose from {sorted(LIKELIHOODS)}")
-        cls = LIKELIHOODS[name]
-        kwargs = dict(options.get(name, {}))
-        if name == "pointcloud":
-            terms[name] = cls(skeleton, **kwargs)
-        else:
-            if cameras is None or len(cameras) == 0:
-                raise ValueError(f"likelihood {name!r} needs cameras")
-            terms[name] = cls(skeleton, cameras, **kwargs)
-    if len(terms) == 1 and next(iter(weights.values())) == 1.0:
-        return next(iter(terms.values()))
-    return L.ProductLikelihood(terms, weights=weights)
 
 
 def body_partition(skeleton, *, per_limb: bool = False, joints: bool = False) -> list[list[int]]:

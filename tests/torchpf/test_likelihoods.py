@@ -150,6 +150,7 @@ class CountingSkeleton(torch.nn.Module):
         super().__init__()
         self.skel, self.calls = skel, 0
         self.joint_names, self.dof_names = skel.joint_names, skel.dof_names
+        self.bones, self.radii = skel.bones, skel.radii
 
     def capsules(self, theta):
         self.calls += 1
