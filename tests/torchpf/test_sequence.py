@@ -6,35 +6,10 @@ import numpy as np
 import pytest
 import torch
 
-from torchpf.camera import camera_ring, look_at
 from torchpf.sequence import load_truth_csv, read_sequence, save_truth_csv, write_sequence
 from torchpf.synth import SynthOptions, synthesize
 
 W, H = 160, 120
-
-
-@pytest.fixture(scope="module")
-def skel(human):
-    return human
-
-
-@pytest.fixture(scope="module")
-def motion(skel):
-    names = skel.dof_names
-    m = torch.zeros(4, len(names), dtype=torch.float64)
-    m[:, names.index("Hips_Yposition")] = 1.0
-    m[:, names.index("LeftArm_Yrotation")] = torch.linspace(0.2, 0.8, 4, dtype=torch.float64)
-    return m
-
-
-@pytest.fixture(scope="module")
-def rig():
-    return camera_ring(3, radius=4.0, height=1.5, target=(0, 0, 0.8), width=W, height_px=H)
-
-
-@pytest.fixture(scope="module")
-def depth_cam():
-    return look_at((0.6, -3.0, 1.4), (0, 0, 0.8), width=W, height=H, name="depth")
 
 
 def test_truth_csv_roundtrip(tmp_path):
@@ -54,7 +29,11 @@ def test_truth_csv_roundtrip(tmp_path):
         load_truth_csv(tmp_path / "bad.csv")
 
 
-def test_sequence_directory_roundtrip(tmp_path, skel, motion, rig, depth_cam):
+def test_sequence_directory_roundtrip(tmp_path, human, rig, depth_cam):
+    skel = human
+    motion = torch.zeros(4, len(skel.dof_names), dtype=torch.float64)
+    motion[:, skel.dof_names.index("Hips_Yposition")] = 1.0
+    motion[:, skel.dof_names.index("LeftArm_Yrotation")] = torch.linspace(0.2, 0.8, 4, dtype=torch.float64)
     opts = SynthOptions(missing_frames=0.3, keypoint_dropout=0.2)
     seq = synthesize(skel, motion, rig, depth_camera=depth_cam, options=opts, seed=4)
     root = tmp_path / "seq"

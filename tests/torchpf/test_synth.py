@@ -5,7 +5,6 @@ import numpy as np
 import pytest
 import torch
 
-from torchpf.camera import camera_ring, look_at
 from torchpf.geometry import capsule_distance, capsule_masks, project_capsules
 from torchpf.observations import Frame
 from torchpf.sensors import depth_to_points
@@ -29,16 +28,6 @@ def motion(skel):
     m[:, names.index("LeftArm_Yrotation")] = torch.linspace(0.2, 0.8, T, dtype=torch.float64)
     m[:, names.index("RightUpLeg_Xrotation")] = torch.linspace(0.0, -0.4, T, dtype=torch.float64)
     return m
-
-
-@pytest.fixture(scope="module")
-def rig():
-    return camera_ring(3, radius=4.0, height=1.5, target=(0, 0, 0.8), width=W, height_px=H)
-
-
-@pytest.fixture(scope="module")
-def depth_cam():
-    return look_at((0.6, -3.0, 1.4), (0, 0, 0.8), width=W, height=H, name="depth")
 
 
 @pytest.fixture(scope="module")

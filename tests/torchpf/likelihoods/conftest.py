@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 import torch
 
-from torchpf.camera import camera_ring, look_at
 from torchpf.likelihoods import SkinBlobLikelihood
 from torchpf.observations import DistanceMaps
 from torchpf.synth import synthesize
@@ -32,16 +31,6 @@ def truth(skel):
     }.items():
         th[names.index(k)] = v
     return th
-
-
-@pytest.fixture(scope="module")
-def rig():
-    return camera_ring(3, radius=4.0, height=1.5, target=(0, 0, 0.8), width=W, height_px=H)
-
-
-@pytest.fixture(scope="module")
-def depth_cam():
-    return look_at((0.6, -3.0, 1.4), (0, 0, 0.8), width=W, height=H, name="depth")
 
 
 @pytest.fixture(scope="module")
