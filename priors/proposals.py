@@ -47,6 +47,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from priors.motion import AngularRandomWalk, ProjectedGaussian
+from torchpf.camera import CameraRig
 from torchpf.observations import Frame, PointCloud, Silhouettes
 
 
@@ -89,10 +90,10 @@ class _CameraSet:
     """Cameras for the inside-the-silhouette test, projected into each observation's pixel grid."""
 
     def __init__(self, cameras):
-        cams = list(cameras.values()) if isinstance(cameras, Mapping) else list(cameras)
-        if not cams:
+        # Not a submodule: projection casts the rig's buffers to the points' device and dtype.
+        self.rig = CameraRig(cameras)
+        if not len(self.rig):
             raise ValueError("at least one camera is needed")
-        self.cameras = cams
 
     def inside(self, X: Tensor, sil: Silhouettes, masks: Tensor) -> Tensor:
         """``(..., 3)`` world points -> ``(...)`` bool: inside the (dilated) mask of every valid camera.
@@ -100,24 +101,19 @@ class _CameraSet:
         Nearest-pixel look-up; a point behind a camera or outside its image is outside. A camera whose frame
         is missing (``sil.valid`` False) does not constrain.
         """
-        if len(self.cameras) != masks.shape[0]:
-            raise ValueError(f"{masks.shape[0]} masks for {len(self.cameras)} cameras")
+        V = len(self.rig)
+        if V != masks.shape[0]:
+            raise ValueError(f"{masks.shape[0]} masks for {V} cameras")
         H, W = masks.shape[-2:]
-        ok = torch.ones(X.shape[:-1], dtype=torch.bool, device=X.device)
-        for v, cam in enumerate(self.cameras):
-            if not bool(sil.valid[v]):
-                continue
-            uv = cam.project(X)
-            if cam.width > 0 and cam.height > 0 and (cam.width, cam.height) != (W, H):
-                uv = (uv + 0.5) * uv.new_tensor([W / cam.width, H / cam.height]) - 0.5
-            u = torch.round(uv[..., 0])
-            w = torch.round(uv[..., 1])
-            valid = (u >= 0) & (u <= W - 1) & (w >= 0) & (w <= H - 1) & cam.in_front(X)
-            ui = u.clamp(0, W - 1).long()
-            wi = w.clamp(0, H - 1).long()
-            hit = masks[v].to(X.device)[wi, ui] > 0.5
-            ok = ok & valid & hit
-        return ok
+        rig = self.rig.resized(W, H)
+        uv = torch.round(rig.project(X))  # (..., V, 2)
+        u, w = uv[..., 0], uv[..., 1]
+        valid = (u >= 0) & (u <= W - 1) & (w >= 0) & (w <= H - 1) & rig.in_front(X)
+        ui = u.clamp(0, W - 1).long()
+        wi = w.clamp(0, H - 1).long()
+        hit = masks.to(X.device)[torch.arange(V, device=X.device), wi, ui] > 0.5
+        free = ~sil.valid.to(X.device)
+        return ((valid & hit) | free).all(-1)
 
 
 def _dilated(sil: Silhouettes, px: int) -> Tensor:

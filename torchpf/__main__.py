@@ -77,8 +77,8 @@ def _require_file(path: str, what: str) -> str:
 
 
 def _track(args) -> int:
+    from torchpf.sequence import read_sequence
     from torchpf.skeleton import Skeleton
-    from torchpf.synth import read_sequence
     from torchpf.tracker import Tracker
 
     skel = Skeleton.from_urdf(_require_file(args.skeleton, "skeleton"))

@@ -39,11 +39,12 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 import torch
+from torch import nn
 
 from torchpf.io import write_atomic
 
@@ -82,7 +83,12 @@ def project_points(
         (..., 2) pixel coordinates (u right, v down). Points at or behind the camera plane give
         meaningless (but finite where z != 0) values; check :meth:`Camera.depth`.
     """
-    xc = points @ R.transpose(-1, -2) + t
+    return _camera_to_pixels(points @ R.transpose(-1, -2) + t, K, dist)
+
+
+def _camera_to_pixels(xc: torch.Tensor, K: torch.Tensor, dist: torch.Tensor | None) -> torch.Tensor:
+    """(..., 3) camera-frame points -> (..., 2) pixels: perspective division, distortion, intrinsics. ``K``
+    (..., 3, 3) and ``dist`` (..., 5) broadcast against the points' leading dims (one camera or a rig's V)."""
     z = xc[..., 2]
     # Keep the division finite for points on the camera plane; they are flagged by depth <= 0 anyway.
     z = torch.where(z.abs() < 1e-12, torch.full_like(z, 1e-12), z)
@@ -99,6 +105,19 @@ def project_points(
     u = K[..., 0, 0] * x + K[..., 0, 1] * y + K[..., 0, 2]
     v = K[..., 1, 1] * y + K[..., 1, 2]
     return torch.stack([u, v], -1)
+
+
+def _resized_intrinsics(K: torch.Tensor, sx, sy) -> torch.Tensor:
+    """Intrinsics (..., 3, 3) of the same camera seen in an image rescaled by ``sx``, ``sy`` (floats or (...,)
+    tensors): focal lengths and skew scale, and pixel centres stay consistent, ``u' + 0.5 = sx (u + 0.5)``
+    (pixel (0, 0) is the centre of the top-left pixel at every resolution)."""
+    K = K.clone()
+    K[..., 0, 0] = K[..., 0, 0] * sx
+    K[..., 0, 1] = K[..., 0, 1] * sx
+    K[..., 1, 1] = K[..., 1, 1] * sy
+    K[..., 0, 2] = (K[..., 0, 2] + 0.5) * sx - 0.5
+    K[..., 1, 2] = (K[..., 1, 2] + 0.5) * sy - 0.5
+    return K
 
 
 def _as_tensor(x, shape: tuple[int, ...], what: str) -> torch.Tensor:
@@ -124,7 +143,8 @@ class Camera:
 
     Tensors are stored as given (float64 from lists); :meth:`project` casts them to the points' dtype and
     device, so the same camera serves float32 particles on CPU or GPU. A camera is a small value object,
-    not an ``nn.Module``: likelihoods copy its tensors into their own buffers.
+    not an ``nn.Module``; several cameras are stacked in a :class:`CameraRig` (an ``nn.Module`` whose
+    buffers move with ``.to()``), which is what likelihoods and proposals hold.
     """
 
     K: torch.Tensor
@@ -140,7 +160,8 @@ class Camera:
         self.R = _as_tensor(self.R, (3, 3), "R")
         self.t = _as_tensor(self.t, (3,), "t")
         if self.dist is not None:
-            d = torch.as_tensor(np.asarray(self.dist, dtype=np.float64).reshape(-1))
+            d = self.dist if isinstance(self.dist, torch.Tensor) else np.asarray(self.dist, dtype=np.float64)
+            d = torch.as_tensor(d).reshape(-1)
             if d.numel() > 5:
                 # OpenCV's rational/thin-prism models (8-14 coefficients) are not implemented.
                 if bool((d[5:] != 0).any()):
@@ -149,7 +170,7 @@ class Camera:
                     )
                 d = d[:5]
             d = torch.cat([d, d.new_zeros(5 - d.numel())])
-            self.dist = None if bool((d == 0).all()) else d.to(self.K.dtype)
+            self.dist = None if bool((d == 0).all()) else d.to(self.K)
         self.width, self.height = int(self.width), int(self.height)
 
     # ------------------------------------------------------------------ geometry
@@ -220,14 +241,13 @@ class Camera:
         return torch.from_numpy(d_world)
 
     def resized(self, width: int, height: int) -> Camera:
-        """The same camera seen at another resolution (intrinsics scaled; pixel centres kept consistent)."""
-        sx, sy = width / self.width, height / self.height
+        """The same camera seen at another resolution: ``width x height`` pixels, intrinsics scaled, pixel
+        centres kept consistent (``u' + 0.5 = (u + 0.5) width / self.width``). This is how observations
+        smaller than the camera images (160x120 masks of 640x480 cameras) are scored. A camera without an
+        image size is taken to be at that resolution already (intrinsics unchanged)."""
         K = self.K.clone()
-        K[0, 0] *= sx
-        K[0, 1] *= sx
-        K[1, 1] *= sy
-        K[0, 2] = (K[0, 2] + 0.5) * sx - 0.5
-        K[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
+        if self.width > 0 and self.height > 0 and (width, height) != (self.width, self.height):
+            K = _resized_intrinsics(K, width / self.width, height / self.height)
         return Camera(
             K, self.R.clone(), self.t.clone(), self.dist, width=width, height=height, name=self.name
         )
@@ -296,29 +316,178 @@ def _checked_array(value, shape, where: str) -> np.ndarray:
     return arr
 
 
-class CameraRig(dict):
-    """An ordered ``dict`` of name -> :class:`Camera` plus ``depth_camera`` (the name of the depth sensor
-    whose points are in ``points/``, or None). Order is the file order, which is the ``V`` axis of
-    multi-camera observations."""
+class CameraRig(nn.Module):
+    """``V`` cameras stacked on one axis (kornia's ``PinholeCamerasList``): the one way code handles several
+    cameras. Projection is batched over the cameras, ``(..., 3) -> (..., V, 2)``, and the intrinsics and
+    extrinsics are buffers, so ``.to()`` moves or casts them with the module that holds the rig.
+
+    Args:
+        cameras: a sequence of :class:`Camera` (named by ``cam.name``) or a name -> camera mapping (another
+            rig included); the order is the ``V`` axis of multi-camera observations (the file order of
+            ``cameras.yaml``).
+        depth_camera: the name of the depth sensor whose points are in ``points/`` of a sequence, or None.
+
+    Buffers: ``K`` (V, 3, 3), ``R`` (V, 3, 3), ``t`` (V, 3), ``dist`` (V, 5) (zeros for a camera without
+    distortion), float64 as built. Plain attributes: ``names``, ``sizes`` ((width, height) per camera),
+    ``depth_camera``.
+
+    A rig also reads as an ordered mapping name -> :class:`Camera` (``rig["cam0"]``, ``rig[0]``, ``list(rig)``
+    the names, ``rig.values()``, ``len(rig)``); each look-up builds a :class:`Camera` from the buffers.
+
+    Example::
+
+        rig = camera_ring(3, width=160, height_px=120)
+        uv = rig.project(joints)                   # (..., J, 3) -> (..., J, V, 2)
+        small = rig.resized(80, 60)                # the same cameras seen on 80x60 masks
+    """
 
     def __init__(
         self, cameras: Mapping[str, Camera] | Iterable[Camera] = (), depth_camera: str | None = None
     ):
+        super().__init__()
         if isinstance(cameras, Mapping):
-            super().__init__(cameras)
+            names = [str(k) for k in cameras.keys()]
+            cams = [cameras[k] for k in cameras.keys()]
         else:
-            super().__init__()
-            for cam in cameras:
-                if cam.name in self:
-                    raise ValueError(f"duplicate camera name {cam.name!r}")
-                self[cam.name] = cam
-        if depth_camera is not None and depth_camera not in self:
-            raise ValueError(f"depth_camera {depth_camera!r} is not one of {list(self)}")
+            cams = list(cameras)
+            names = [c.name for c in cams]
+            seen = set()
+            for n in names:
+                if n in seen:
+                    raise ValueError(f"duplicate camera name {n!r}")
+                seen.add(n)
+        if depth_camera is not None and depth_camera not in names:
+            raise ValueError(f"depth_camera {depth_camera!r} is not one of {names}")
+        if cams:
+            K = torch.stack([c.K for c in cams]).double()
+            R = torch.stack([c.R for c in cams]).to(K)
+            t = torch.stack([c.t for c in cams]).to(K)
+            dist = torch.stack([K.new_zeros(5) if c.dist is None else c.dist.to(K) for c in cams])
+        else:
+            K, R = torch.zeros(0, 3, 3, dtype=torch.float64), torch.zeros(0, 3, 3, dtype=torch.float64)
+            t, dist = torch.zeros(0, 3, dtype=torch.float64), torch.zeros(0, 5, dtype=torch.float64)
+        self._set(
+            names, [(c.width, c.height) for c in cams], [c.dist is not None for c in cams], K, R, t, dist
+        )
         self.depth_camera = depth_camera
+
+    def _set(self, names, sizes, has_dist, K, R, t, dist) -> None:
+        self.names = list(names)
+        self.sizes = [(int(w), int(h)) for w, h in sizes]
+        self.has_dist = list(has_dist)
+        self.register_buffer("K", K)
+        self.register_buffer("R", R)
+        self.register_buffer("t", t)
+        self.register_buffer("dist", dist)
+
+    # ------------------------------------------------------------------ mapping of cameras
+    def __len__(self) -> int:
+        return len(self.names)
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self.names)
+
+    def __contains__(self, name) -> bool:
+        return name in self.names
+
+    def __getitem__(self, key: str | int) -> Camera:
+        """The camera named ``key`` (or at index ``key`` of the V axis), built from the buffers."""
+        v = key if isinstance(key, int) else self.index(key)
+        w, h = self.sizes[v]
+        dist = self.dist[v].clone() if self.has_dist[v] else None
+        return Camera(self.K[v].clone(), self.R[v].clone(), self.t[v].clone(), dist, w, h, self.names[v])
+
+    def index(self, name: str) -> int:
+        """Position of camera ``name`` on the V axis (KeyError if there is none)."""
+        try:
+            return self.names.index(name)
+        except ValueError:
+            raise KeyError(name) from None
+
+    def keys(self) -> list[str]:
+        return list(self.names)
+
+    def values(self) -> list[Camera]:
+        return [self[v] for v in range(len(self))]
+
+    def items(self) -> list[tuple[str, Camera]]:
+        return list(zip(self.names, self.values(), strict=True))
+
+    def get(self, name: str, default=None):
+        return self[name] if name in self.names else default
 
     @property
     def cameras(self) -> list[Camera]:
-        return list(self.values())
+        """The V cameras in order, as :class:`Camera` objects."""
+        return self.values()
+
+    # ------------------------------------------------------------------ batched geometry
+    def _params(self, like: torch.Tensor):
+        kw = {"dtype": like.dtype, "device": like.device}
+        dist = self.dist.to(**kw) if any(self.has_dist) else None
+        return self.K.to(**kw), self.R.to(**kw), self.t.to(**kw), dist
+
+    def to_camera(self, points: torch.Tensor) -> torch.Tensor:
+        """(..., 3) world points -> (..., V, 3) camera-frame points ``R_v x + t_v`` (m)."""
+        _, R, t, _ = self._params(points)
+        V = R.shape[0]
+        # One GEMM for all cameras: column (v, j) of R_all is row j of R_v.
+        R_all = R.permute(2, 0, 1).reshape(3, V * 3)
+        return (points @ R_all).unflatten(-1, (V, 3)) + t
+
+    def project(self, points: torch.Tensor) -> torch.Tensor:
+        """(..., 3) world points (m) -> (..., V, 2) pixels in every camera (OpenCV model, module docstring);
+        differentiable; camera ``v`` gives what ``rig[v].project`` gives."""
+        K, _, _, dist = self._params(points)
+        return _camera_to_pixels(self.to_camera(points), K, dist)
+
+    def depth(self, points: torch.Tensor) -> torch.Tensor:
+        """(..., 3) world points -> (..., V) depth along each optical axis (m); > 0 means in front."""
+        return self.to_camera(points)[..., 2]
+
+    def in_front(self, points: torch.Tensor, near: float = 1e-3) -> torch.Tensor:
+        """(..., 3) -> (..., V) bool: depth greater than ``near`` (m)."""
+        return self.depth(points) > near
+
+    def focal(self, like: torch.Tensor | None = None) -> torch.Tensor:
+        """(V,) mean focal lengths (pixels), in ``like``'s dtype and device when given (see
+        :attr:`Camera.focal`)."""
+        K = self.K if like is None else self.K.to(dtype=like.dtype, device=like.device)
+        return 0.5 * (K[:, 0, 0] + K[:, 1, 1])
+
+    def resized(self, width: int, height: int) -> CameraRig:
+        """Every camera seen at ``width x height`` pixels (:meth:`Camera.resized`, batched): the rig that
+        projects into an observation grid other than the cameras' own. Returns ``self`` when every camera
+        already has that size; a camera without a size keeps its intrinsics."""
+        change = [w > 0 and h > 0 and (w, h) != (width, height) for w, h in self.sizes]
+        if all((w, h) == (width, height) for w, h in self.sizes):
+            return self
+        sx = self.K.new_tensor(
+            [width / w if c else 1.0 for c, (w, h) in zip(change, self.sizes, strict=True)]
+        )
+        sy = self.K.new_tensor(
+            [height / h if c else 1.0 for c, (w, h) in zip(change, self.sizes, strict=True)]
+        )
+        # Cameras already at that size (or without one) keep their intrinsics bit for bit.
+        K = torch.where(
+            self.K.new_tensor(change, dtype=torch.bool)[:, None, None],
+            _resized_intrinsics(self.K, sx, sy),
+            self.K,
+        )
+        rig = CameraRig.__new__(CameraRig)
+        nn.Module.__init__(rig)
+        sizes = [(width, height)] * len(self)
+        rig._set(self.names, sizes, self.has_dist, K, self.R.clone(), self.t.clone(), self.dist.clone())
+        rig.depth_camera = self.depth_camera
+        return rig
+
+    def extra_repr(self) -> str:
+        return f"names={self.names}, sizes={self.sizes}, depth_camera={self.depth_camera!r}"
+
+
+# A rig reads as a mapping (isinstance checks, dict(rig)) without Mapping's value equality, which would make
+# the module unhashable.
+Mapping.register(CameraRig)
 
 
 # ---------------------------------------------------------------------- files

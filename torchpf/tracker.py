@@ -1,7 +1,7 @@
 """High-level tracker: skeleton + likelihood(s) + motion prior + particle filter in one ``nn.Module``.
 
 ``Tracker`` assembles the pieces from keyword arguments (or a small YAML/dict config) and runs them on a
-sequence: a sequence directory of DESIGN.md, a :class:`~torchpf.synth.SequenceData` in memory, or a list of
+sequence: a sequence directory of DESIGN.md, a :class:`~torchpf.sequence.SequenceData` in memory, or a list of
 :class:`~torchpf.observations.Frame` s. The result is an estimated motion (mocap-CSV-able), per-frame ESS,
 the log-evidence and per-frame failure flags.
 
@@ -46,20 +46,10 @@ from typing import Any
 import torch
 from torch import nn
 
-from torchpf import likelihoods as L
 from torchpf.distributions import DYNAMICS, as_generator, make_dynamics
 from torchpf.filters.registry import FILTERS
 from torchpf.io import write_mocap_csv
-
-LIKELIHOODS: dict[str, type] = {
-    "silhouette": L.SilhouetteLikelihood,
-    "dual_silhouette": L.DualSilhouetteLikelihood,
-    "overlap": L.OverlapLikelihood,
-    "pointcloud": L.PointCloudLikelihood,
-    "keypoints": L.Keypoints2DLikelihood,
-    "chamfer": L.ChamferLikelihood,
-    "skin": L.SkinBlobLikelihood,
-}
+from torchpf.likelihoods import LIKELIHOODS, make_likelihood
 
 
 def _diffusion_std(dynamics) -> Any:
@@ -75,38 +65,6 @@ def _diffusion_std(dynamics) -> Any:
 
 def _spec_names(spec) -> list[str]:
     return [spec] if isinstance(spec, str) else list(spec)
-
-
-def make_likelihood(skeleton, cameras, spec, options: Mapping[str, Mapping] | None = None) -> nn.Module:
-    """A likelihood module from a name, a list of names or ``{name: weight}`` (weights of the log terms).
-
-    ``options[name]`` holds constructor keywords of that term (e.g. ``{"silhouette": {"sigma": 0.2}}``).
-    """
-    if isinstance(spec, nn.Module):
-        return spec
-    options = dict(options or {})
-    weights = (
-        {spec: 1.0}
-        if isinstance(spec, str)
-        else dict(spec)
-        if isinstance(spec, Mapping)
-        else {name: 1.0 for name in spec}
-    )
-    terms = {}
-    for name in weights:
-        if name not in LIKELIHOODS:
-            raise ValueError(f"unknown likelihood {name!r}; choose from {sorted(LIKELIHOODS)}")
-        cls = LIKELIHOODS[name]
-        kwargs = dict(options.get(name, {}))
-        if name == "pointcloud":
-            terms[name] = cls(skeleton, **kwargs)
-        else:
-            if cameras is None or len(cameras) == 0:
-                raise ValueError(f"likelihood {name!r} needs cameras")
-            terms[name] = cls(skeleton, cameras, **kwargs)
-    if len(terms) == 1 and next(iter(weights.values())) == 1.0:
-        return next(iter(terms.values()))
-    return L.ProductLikelihood(terms, weights=weights)
 
 
 def body_partition(skeleton, *, per_limb: bool = False, joints: bool = False) -> list[list[int]]:
@@ -386,7 +344,7 @@ class Tracker(nn.Module):
         """Track a sequence.
 
         Args:
-            sequence: a sequence directory (path), a :class:`~torchpf.synth.SequenceData`, or a list of
+            sequence: a sequence directory (path), a :class:`~torchpf.sequence.SequenceData`, or a list of
                 per-frame observations (:class:`~torchpf.observations.Frame` or whatever the likelihood
                 takes).
             init: (D,) initial pose; default the sequence's first ground-truth frame.
@@ -397,7 +355,7 @@ class Tracker(nn.Module):
         Returns:
             :class:`TrackResult`.
         """
-        from torchpf.synth import SequenceData, read_sequence
+        from torchpf.sequence import SequenceData, read_sequence
 
         if isinstance(sequence, str | os.PathLike):
             sequence = read_sequence(sequence)

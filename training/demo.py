@@ -23,7 +23,8 @@ import torch
 
 from torchpf import Skeleton, metrics
 from torchpf.camera import camera_ring
-from torchpf.synth import SynthOptions, synthesize, write_sequence
+from torchpf.sequence import write_sequence
+from torchpf.synth import SynthOptions, synthesize
 from torchpf.tracker import Tracker
 from training.fit import fit_action_model
 from training.mocap import load_csv

@@ -125,6 +125,55 @@ def test_resized_is_consistent():
     )
 
 
+def _mixed_rig():
+    rng = np.random.default_rng(8)
+    cams = [random_camera(rng), random_camera(rng, dist=False), random_camera(rng)]
+    for i, c in enumerate(cams):
+        c.name = f"c{i}"
+    cams[2] = cams[2].resized(320, 240)  # cameras of different sizes
+    return cams, CameraRig(cams, depth_camera="c1")
+
+
+def test_rig_projects_into_every_camera_at_once():
+    cams, rig = _mixed_rig()
+    X = torch.randn(4, 6, 3, dtype=torch.float64) * 0.5
+    uv = rig.project(X)
+    assert uv.shape == (4, 6, 3, 2)
+    for v, cam in enumerate(cams):
+        torch.testing.assert_close(uv[..., v, :], cam.project(X), rtol=0, atol=1e-9)
+        torch.testing.assert_close(rig.depth(X)[..., v], cam.depth(X), rtol=0, atol=1e-12)
+        assert rig.focal()[v].item() == pytest.approx(cam.focal)
+    assert rig.in_front(X).shape == (4, 6, 3)
+    small = rig.resized(160, 120)
+    assert small.sizes == [(160, 120)] * 3 and rig.resized(640, 480) is not rig
+    for v, cam in enumerate(cams):
+        torch.testing.assert_close(
+            small.project(X)[..., v, :], cam.resized(160, 120).project(X), rtol=0, atol=1e-9
+        )
+    same = CameraRig(cams[:2])
+    assert same.resized(640, 480) is same
+
+
+def test_rig_is_a_module_and_a_mapping():
+    cams, rig = _mixed_rig()
+    assert list(rig) == ["c0", "c1", "c2"] and len(rig) == 3 and "c1" in rig and rig.depth_camera == "c1"
+    assert rig["c1"].dist is None and rig[0].name == "c0" and rig.index("c2") == 2
+    torch.testing.assert_close(rig["c2"].K, cams[2].K)
+    assert (rig["c2"].width, rig["c2"].height) == (320, 240)
+    assert [c.name for c in rig.values()] == ["c0", "c1", "c2"] and dict(rig).keys() == {"c0", "c1", "c2"}
+    with pytest.raises(KeyError):
+        rig["nope"]
+    with pytest.raises(ValueError, match="duplicate"):
+        CameraRig([cams[0], cams[0]])
+    holder = torch.nn.Module()
+    holder.rig = rig
+    holder.to(torch.float32)
+    assert rig.K.dtype == torch.float32 and "rig.K" in dict(holder.named_buffers())
+    assert rig.project(torch.zeros(2, 3)).dtype == torch.float32
+    copy = CameraRig(rig)  # a copy with its own buffers
+    assert copy.K.data_ptr() != rig.K.data_ptr() and list(copy) == list(rig)
+
+
 def test_cameras_yaml_roundtrip(tmp_path):
     rng = np.random.default_rng(5)
     cams = [random_camera(rng), random_camera(rng, dist=False)]

@@ -11,7 +11,8 @@ from torchpf.__main__ import main
 from torchpf.assets import path
 from torchpf.camera import camera_ring
 from torchpf.io import read_mocap_csv, write_mocap_csv
-from torchpf.synth import synthesize, write_sequence
+from torchpf.sequence import write_sequence
+from torchpf.synth import synthesize
 from training.synthetic import generate
 
 

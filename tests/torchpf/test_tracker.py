@@ -9,7 +9,8 @@ from torchpf.camera import camera_ring
 from torchpf.io import read_mocap_csv
 from torchpf.likelihoods import ProductLikelihood, SilhouetteLikelihood
 from torchpf.proposals import GaussianRandomWalk
-from torchpf.synth import synthesize, write_sequence
+from torchpf.sequence import write_sequence
+from torchpf.synth import synthesize
 from torchpf.tracker import Tracker, body_partition
 from training.synthetic import generate
 

@@ -1,0 +1,207 @@
+"""Projected 2-D capsules against OpenCV drawing, independent per-point formulas and pixel counts."""
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from torchpf.camera import camera_ring, look_at
+from torchpf.geometry import (
+    Capsules2D,
+    capsule_coverage,
+    capsule_masks,
+    outline_points,
+    project_capsules,
+    sample_in_capsules,
+)
+from torchpf.geometry.projected import _uneven_capsule_sdf
+
+
+def test_project_capsules_radius_on_axis():
+    cam = look_at((0.0, -4.0, 1.0), (0.0, 0.0, 1.0), width=160, height=120, fov_deg=50)
+    a = torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64)
+    b = torch.tensor([[0.0, 0.0, 1.5]], dtype=torch.float64)
+    caps = project_capsules(cam, a, b, torch.tensor([0.1], dtype=torch.float64))
+    f = cam.K[0, 0].item()
+    assert caps.ra.item() == pytest.approx(f * 0.1 / 4.0)
+    np.testing.assert_allclose(caps.pa.numpy(), [[79.5, 59.5]])
+    assert caps.pb[0, 1] < caps.pa[0, 1] and bool(caps.valid.all())
+    behind = project_capsules(
+        cam, a - torch.tensor([0.0, 5.0, 0.0], dtype=torch.float64), b, caps.ra.new_tensor([0.1])
+    )
+    assert not bool(behind.valid.any())
+
+
+def test_project_capsules_into_a_rig():
+    rig = camera_ring(3, radius=4.0, width=160, height_px=120)
+    g = torch.Generator().manual_seed(0)
+    a = torch.randn(5, 4, 3, generator=g, dtype=torch.float64) * 0.3 + torch.tensor([0.0, 0.0, 1.0])
+    b = a + torch.randn(5, 4, 3, generator=g, dtype=torch.float64) * 0.2
+    r = torch.full((4,), 0.05, dtype=torch.float64)
+    caps = project_capsules(rig, a, b, r)
+    assert caps.pa.shape == (5, 3, 4, 2) and caps.ra.shape == (5, 3, 4)
+    for v, (cam, one) in enumerate(zip(rig.values(), caps.unbind(1), strict=True)):
+        ref = project_capsules(cam, a, b, r)
+        for x, y in zip((one.pa, one.pb, one.ra, one.rb), (ref.pa, ref.pb, ref.ra, ref.rb), strict=True):
+            torch.testing.assert_close(x, y, rtol=1e-12, atol=1e-9)
+        assert torch.equal(one.valid, ref.valid), v
+
+
+def cv2_capsule_mask(pa, pb, ra, rb, H, W, shift=8):
+    """Reference raster: both discs plus the convex hull of densely sampled disc boundaries, sub-pixel."""
+    m = np.zeros((H, W), np.uint8)
+    s = 1 << shift
+    for (x, y), rad in ((pa, ra), (pb, rb)):
+        cv2.circle(m, (round(x * s), round(y * s)), round(rad * s), 255, -1, cv2.LINE_8, shift)
+    phi = np.linspace(0, 2 * np.pi, 720, endpoint=False)
+    pts = np.concatenate(
+        [np.stack([c[0] + rad * np.cos(phi), c[1] + rad * np.sin(phi)], 1) for c, rad in ((pa, ra), (pb, rb))]
+    )
+    hull = cv2.convexHull(np.round(pts * s).astype(np.int32))
+    cv2.fillConvexPoly(m, hull, 255, cv2.LINE_8, shift)
+    return m > 0
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_capsule_masks_match_opencv_drawing(seed):
+    rng = np.random.default_rng(seed)
+    H, W = 60, 80
+    pa, pb = rng.uniform([10, 10], [70, 50]), rng.uniform([10, 10], [70, 50])
+    ra, rb = rng.uniform(2, 8), rng.uniform(2, 8)
+    caps = Capsules2D(
+        torch.from_numpy(pa)[None, None],
+        torch.from_numpy(pb)[None, None],
+        torch.tensor([[ra]]),
+        torch.tensor([[rb]]),
+        torch.tensor([[True]]),
+    )
+    mask = capsule_masks(caps, H, W)[0].numpy()
+    ref = cv2_capsule_mask(pa, pb, ra, rb, H, W)
+    v, u = np.mgrid[0:H, 0:W]
+    sdf = _uneven_capsule_sdf(
+        torch.from_numpy(np.stack([u, v], -1)).double(),
+        torch.tensor(pa),
+        torch.tensor(pb),
+        torch.tensor(ra),
+        torch.tensor(rb),
+    ).numpy()
+    differ = mask != ref
+    # OpenCV fills a little beyond the exact edge (up to ~0.7 px); every pixel centre further than that from
+    # the boundary must agree, and the disagreement band is thin.
+    assert np.abs(sdf[differ]).max(initial=0) < 0.75
+    assert differ.sum() < 0.25 * ref.sum() and mask.sum() > 0
+
+
+def test_capsule_masks_union_soft_and_invalid():
+    caps = Capsules2D(
+        torch.tensor([[[10.0, 10.0], [30.0, 20.0]]]),
+        torch.tensor([[[20.0, 10.0], [30.0, 25.0]]]),
+        torch.tensor([[3.0, 2.0]]),
+        torch.tensor([[3.0, 2.0]]),
+        torch.tensor([[True, False]]),
+    )
+    hard = capsule_masks(caps, 32, 40)
+    assert hard.dtype == torch.bool and hard.shape == (1, 32, 40)
+    assert bool(hard[0, 10, 15]) and not bool(hard[0, 22, 30])  # the invalid capsule is not drawn
+    soft = capsule_masks(caps, 32, 40, soft=0.5)
+    assert soft.dtype == torch.float32 and float(soft[0, 10, 15]) > 0.99 and float(soft[0, 0, 0]) < 1e-6
+
+
+def _caps(seed, n=4, C=3):
+    g = torch.Generator().manual_seed(seed)
+    pa = torch.rand(n, C, 2, generator=g, dtype=torch.float64) * 60 + 10
+    pb = pa + torch.randn(n, C, 2, generator=g, dtype=torch.float64) * 15
+    ra = torch.rand(n, C, generator=g, dtype=torch.float64) * 5 + 2
+    rb = torch.rand(n, C, generator=g, dtype=torch.float64) * 5 + 2
+    return Capsules2D(pa, pb, ra, rb, torch.ones(n, C, dtype=torch.bool))
+
+
+def round_cone_sdf(p, pa, pb, ra, rb):
+    """Independent per-point formula of the sampled region {|p - q(t)| <= r(t)}."""
+    e = pb - pa
+    t = np.clip((p - pa) @ e / (e @ e), 0, 1)
+    return np.linalg.norm(p - pa - t * e) - (ra + t * (rb - ra))
+
+
+@pytest.mark.parametrize("generator", [None, 7])
+def test_sample_in_capsules_inside_and_area(generator):
+    caps = _caps(0)
+    gen = None if generator is None else torch.Generator().manual_seed(generator)
+    pts, w = sample_in_capsules(caps, 24, 6, generator=gen)
+    assert pts.shape == (4, 3 * 36, 2) and w.shape == (4, 3 * 36)
+    for n in range(4):
+        for c in range(3):
+            sl = slice(c * 36, (c + 1) * 36)
+            args = [x[n, c].numpy() for x in (caps.pa, caps.pb, caps.ra, caps.rb)]
+            sd = np.array([round_cone_sdf(p, *args) for p in pts[n, sl].numpy()])
+            assert sd.max() < 1e-9
+            pa, pb, ra, rb = args
+            area = np.linalg.norm(pb - pa) * (ra + rb) + 0.5 * np.pi * (ra**2 + rb**2)
+            assert w[n, sl].sum().item() == pytest.approx(area, rel=1e-9)
+    if gen is not None:
+        again, _ = sample_in_capsules(caps, 24, 6, generator=torch.Generator().manual_seed(generator))
+        assert torch.equal(pts, again)
+
+
+def test_sample_in_capsules_is_area_uniform():
+    # The weighted share of points left of a vertical line equals the share of area (pixel count) there.
+    caps = Capsules2D(
+        torch.tensor([[[20.0, 30.0]]]),
+        torch.tensor([[[90.0, 40.0]]]),
+        torch.tensor([[4.0]]),
+        torch.tensor([[12.0]]),
+        torch.tensor([[True]]),
+    )
+    pts, w = sample_in_capsules(caps, 400, 100)
+    mask = capsule_masks(caps, 80, 120)[0]
+    for x in (30.0, 55.0, 80.0):
+        share = (w * (pts[..., 0] < x)).sum() / w.sum()
+        pix = mask[:, : int(x + 0.5)].sum() / mask.sum()
+        assert share.item() == pytest.approx(pix.item(), abs=0.02)
+
+
+def test_capsule_coverage_matches_masks():
+    caps = _caps(1, n=2)
+    H, W = 90, 100
+    v, u = torch.meshgrid(
+        torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij"
+    )
+    grid = torch.stack([u, v], -1).reshape(-1, 2)
+    cov = capsule_coverage(grid, caps).reshape(2, H, W)
+    mask = capsule_masks(caps, H, W).double()
+    differ = cov != mask
+    assert differ.sum() <= 0.01 * mask.sum()
+    # Counting mode: pixels covered by two capsules count twice; per-pose points give the same values.
+    count = capsule_coverage(grid, caps, reduce="sum")
+    assert torch.equal(count >= 1, cov.reshape(2, -1) > 0)
+    per_pose = capsule_coverage(grid.expand(2, -1, 2), caps)
+    assert torch.equal(per_pose, cov.reshape(2, -1))
+    soft = capsule_coverage(grid, caps, softness=1.0).reshape(2, H, W)
+    assert float((soft - cov).abs().max()) <= 1.0 and bool(((soft > 0) & (soft < 1)).any())
+
+
+def test_capsule_coverage_exclude_own_and_gradient():
+    caps = _caps(2, n=1, C=2)
+    pts, _ = sample_in_capsules(caps, 8, 2)
+    own = capsule_coverage(pts, caps, reduce="sum")
+    others = capsule_coverage(pts, caps, reduce="sum", exclude_own=12)
+    assert bool((own - others >= 1 - 1e-12).all())
+    ra = caps.ra.clone().requires_grad_()
+    g = (
+        torch.tensor([[40.0, 40.0]], dtype=torch.float64).expand(1, 50, 2)
+        + torch.randn(1, 50, 2, dtype=torch.float64) * 10
+    )
+    cov = capsule_coverage(g, Capsules2D(caps.pa, caps.pb, ra, caps.rb, caps.valid), softness=2.0).sum()
+    cov.backward()
+    assert torch.isfinite(ra.grad).all()
+
+
+def test_outline_points_lie_on_the_boundary():
+    caps = _caps(3, n=2, C=2)
+    pts, ok = outline_points(caps, 5, 3)
+    assert pts.shape == (2, 2 * 16, 2) and bool(ok.all())
+    for n in range(2):
+        for c in range(2):
+            args = [x[n, c].numpy() for x in (caps.pa, caps.pb, caps.ra, caps.rb)]
+            sd = np.array([round_cone_sdf(p, *args) for p in pts[n, c * 16 : (c + 1) * 16].numpy()])
+            np.testing.assert_allclose(sd, 0.0, atol=1e-9)

@@ -1,0 +1,1 @@
+"""Likelihood tests (a package: its basenames mirror torchpf/likelihoods/ and may recur elsewhere)."""

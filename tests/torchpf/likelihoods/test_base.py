@@ -1,0 +1,121 @@
+"""Every cue through the base class: peaks at the truth along 1-DOF sweeps (Fontmarty Fig. 4),
+gradients, batch dims, dtypes and determinism, missing data, the body computed once, the registry."""
+
+import pytest
+import torch
+
+from torchpf.likelihoods import (
+    LIKELIHOODS,
+    Body,
+    DualSilhouetteLikelihood,
+    PointCloudLikelihood,
+    SilhouetteLikelihood,
+)
+from torchpf.observations import Frame, PointCloud, Silhouettes
+
+from .cases import STEP_TOLERANCE, assert_peak, make_liks, sweep
+
+
+@pytest.mark.parametrize(
+    "dof", ["LeftArm_Yrotation", "LeftForeArm_Zrotation", "Hips_Xposition", "RightUpLeg_Xrotation"]
+)
+def test_every_likelihood_peaks_at_truth(skel, truth, rig, depth_cam, frame, dof):
+    thetas, centre = sweep(truth, skel, dof, half=0.3 if "position" in dof else 0.4)
+    for name, lik in make_liks(skel, rig, depth_cam).items():
+        if name == "skin" and dof == "RightUpLeg_Xrotation":
+            continue  # the skin markers (head, hands) do not move with the leg
+        vals = lik(thetas.float(), frame)
+        assert vals.shape == (len(thetas),), name
+        try:
+            assert_peak(vals, centre, steps=STEP_TOLERANCE.get(name, 0))
+        except AssertionError as e:
+            raise AssertionError(f"{name}: {e}") from None
+
+
+@pytest.mark.parametrize(
+    "name",
+    ["pointcloud", "pointcloud_half", "silhouette", "dual_soft", "overlap", "keypoints", "skin", "chamfer"],
+)
+def test_gradients_exist(skel, truth, rig, depth_cam, frame, name):
+    lik = make_liks(skel, rig, depth_cam)[name]
+    thetas, _ = sweep(truth, skel, "LeftForeArm_Zrotation", half=0.2, n=3)
+    thetas = thetas.clone().requires_grad_()
+    lik(thetas, frame).sum().backward()
+    g = thetas.grad
+    j = skel.dof_names.index("LeftForeArm_Zrotation")
+    assert torch.isfinite(g).all()
+    assert float(g[:, j].abs().max()) > 0
+
+
+def test_batch_dims_dtype_and_determinism(skel, truth, rig, depth_cam, frame):
+    g = torch.Generator().manual_seed(0)
+    thetas = truth + 0.05 * torch.randn(2, 3, len(truth), generator=g, dtype=torch.float64)
+    for name, lik in make_liks(skel, rig, depth_cam).items():
+        batched = lik(thetas, frame)
+        assert batched.shape == (2, 3) and batched.dtype == torch.float64, name
+        flat = lik(thetas.reshape(6, -1), frame)
+        torch.testing.assert_close(batched.reshape(6), flat, msg=name)
+        torch.testing.assert_close(lik(thetas, frame), batched, msg=name)  # fixed sample patterns
+        f32 = lik(thetas.float(), frame)
+        assert f32.dtype == torch.float32
+        torch.testing.assert_close(f32.double(), batched, rtol=1e-3, atol=1e-2, msg=name)
+
+
+def test_missing_data_contributes_nothing(skel, truth, rig, frame):
+    thetas, centre = sweep(truth, skel, "LeftArm_Yrotation")
+    sil = SilhouetteLikelihood(skel, rig)
+    assert torch.equal(sil(thetas, Frame()), torch.zeros(len(thetas), dtype=torch.float64))
+    assert torch.equal(
+        PointCloudLikelihood(skel)(thetas, PointCloud(torch.zeros(0, 3))), torch.zeros(len(thetas))
+    )
+    # Dropping camera 1 equals scoring with cameras 0 and 2 only.
+    masks = frame.silhouettes.masks
+    dropped = Silhouettes(masks, valid=torch.tensor([True, False, True]))
+    two = SilhouetteLikelihood(skel, [rig["cam0"], rig["cam2"]])
+    torch.testing.assert_close(sil(thetas, dropped), two(thetas, Silhouettes(masks[[0, 2]])))
+    dual = DualSilhouetteLikelihood(skel, rig)
+    dual_two = DualSilhouetteLikelihood(skel, [rig["cam0"], rig["cam2"]])
+    torch.testing.assert_close(dual(thetas, dropped), dual_two(thetas, Silhouettes(masks[[0, 2]])))
+    with pytest.raises(ValueError, match="cameras"):
+        two(thetas, frame)
+    with pytest.raises(TypeError, match="Silhouettes"):
+        sil(thetas, 3.0)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_likelihoods_cuda(skel, truth, rig, depth_cam, frame):
+    thetas, _ = sweep(truth, skel, "LeftArm_Yrotation", n=5)
+    for name, lik in make_liks(skel, rig, depth_cam).items():
+        cpu = lik(thetas, frame)
+        gpu = lik.to("cuda")(thetas.cuda(), frame)
+        torch.testing.assert_close(gpu.cpu(), cpu, msg=name)
+
+
+def test_body_is_one_forward_kinematics(skel, truth):
+    g = torch.Generator().manual_seed(0)
+    thetas = truth + 0.05 * torch.randn(2, 3, len(truth), generator=g, dtype=torch.float64)
+    body = Body.of(skel, thetas)
+    assert body.batch == (2, 3) and body.theta.shape == (6, len(truth))
+    torch.testing.assert_close(body.joints, skel.fk(thetas).reshape(6, -1, 3), rtol=0, atol=0)
+    ends, radii = skel.capsules(thetas)
+    torch.testing.assert_close(body.ends, ends.reshape(6, -1, 2, 3), rtol=0, atol=0)
+    a, b, r = body.capsules([0, 2])
+    torch.testing.assert_close(a, ends.reshape(6, -1, 2, 3)[:, [0, 2], 0], rtol=0, atol=0)
+    torch.testing.assert_close(r, radii[[0, 2]], rtol=0, atol=0)
+
+
+def test_forward_is_the_body_score(skel, truth, rig, depth_cam, frame):
+    thetas, _ = sweep(truth, skel, "LeftArm_Yrotation", n=4)
+    thetas = thetas.reshape(2, 2, -1)
+    body = Body.of(skel, thetas)
+    for name, lik in make_liks(skel, rig, depth_cam).items():
+        torch.testing.assert_close(lik.log_likelihood_body(body, frame), lik(thetas, frame), msg=name)
+
+
+def test_registry_names_every_cue():
+    assert LIKELIHOODS.names() == sorted(
+        ["silhouette", "dual_silhouette", "overlap", "pointcloud", "keypoints", "chamfer", "skin"]
+    )
+    assert LIKELIHOODS.get("pointcloud") is PointCloudLikelihood and not PointCloudLikelihood.needs_cameras
+    with pytest.raises(ValueError, match="unknown likelihood 'nope'; choose from"):
+        LIKELIHOODS.get("nope")

@@ -1,0 +1,352 @@
+"""Capsules projected into an image: tapered 2-D capsules, their rasterisation, sample points and coverage.
+
+Each 3-D capsule (:mod:`torchpf.geometry.capsules`) seen by a camera becomes a 2-D *tapered capsule*: the
+convex hull of two discs (the projected end spheres, radius ~``f r / z`` pixels) - the "projected truncated
+cones" of Fontmarty et al. §3.2.1.
+
+* :func:`project_capsules` - 3-D capsules and a camera -> :class:`Capsules2D`.
+* :func:`capsule_masks` - rasterise projected capsules into (..., H, W) silhouettes (bool or soft).
+* :func:`sample_in_capsules` - area-uniform sample points inside projected capsules with their area
+  weights (fixed quasi-random pattern :func:`sample_pattern`, or random with a ``torch.Generator``),
+  :func:`capsule_coverage` - whether image points are covered by the projected model, and
+  :func:`outline_points` - points on the capsule outlines (Chamfer matching).
+
+Shapes: ``...`` batch (poses), ``C`` capsules, ``P`` points. Units: pixels. dtype and device follow the
+inputs; everything is differentiable where the geometry is.
+
+Example::
+
+    from torchpf.geometry import capsule_masks, project_capsules
+    ends, radii = skel.capsules(theta)                               # (N, C, 2, 3), (C,)
+    caps = project_capsules(camera, ends[..., 0, :], ends[..., 1, :], radii)
+    masks = capsule_masks(caps, camera.height, camera.width)         # (N, H, W) bool
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from torchpf.camera import CameraRig
+from torchpf.geometry.capsules import _chunk_rows
+
+__all__ = [
+    "Capsules2D",
+    "capsule_coverage",
+    "capsule_masks",
+    "outline_points",
+    "project_capsules",
+    "sample_in_capsules",
+    "sample_pattern",
+]
+
+
+@dataclass
+class Capsules2D:
+    """Projected capsules: tapered 2D capsules = convex hulls of two discs, in pixels.
+
+    Fields (all with leading ``...`` batch dims): ``pa``, ``pb`` (..., C, 2) disc centres; ``ra``, ``rb``
+    (..., C) disc radii; ``valid`` (..., C) bool, False where an end lies behind the camera (such a
+    capsule is dropped from masks, samples and coverage).
+    """
+
+    pa: torch.Tensor
+    pb: torch.Tensor
+    ra: torch.Tensor
+    rb: torch.Tensor
+    valid: torch.Tensor
+
+    def unbind(self, dim: int) -> list[Capsules2D]:
+        """Split along batch dim ``dim`` (>= 0, counted from the front): e.g. the V cameras of a rig
+        projection (..., V, C) with ``dim = len(...)``."""
+        fields = (self.pa, self.pb, self.ra, self.rb, self.valid)
+        return [Capsules2D(*parts) for parts in zip(*(f.unbind(dim) for f in fields), strict=True)]
+
+
+def project_capsules(camera, a: torch.Tensor, b: torch.Tensor, radius: torch.Tensor, near: float = 1e-2):
+    """Project 3D capsules into a camera (Fontmarty et al. §3.2.1 "projected truncated cones").
+
+    Args:
+        camera: a :class:`torchpf.camera.Camera`, or a :class:`torchpf.camera.CameraRig` of V cameras
+            projected into all at once.
+        a, b: (..., C, 3) ends (m); radius: (C,) radii (m); near: minimum depth (m) of a valid end.
+
+    Returns:
+        :class:`Capsules2D` (..., C) for a camera, (..., V, C) for a rig, with radii ``f r / (z sqrt(cos t))``
+        (pixels) at each end's depth ``z`` and angle ``t`` off the optical axis: the perspective image of a
+        sphere is an ellipse, this circle has its area (exact on the optical axis).
+    """
+    ends = torch.stack([a, b], -2)  # (..., C, 2, 3)
+    uv = camera.project(ends)
+    xc = camera.to_camera(ends)
+    focal = camera.focal
+    if isinstance(camera, CameraRig):  # (..., C, 2, V, k) -> (..., V, C, 2, k)
+        uv, xc = uv.movedim(-2, -4), xc.movedim(-2, -4)
+        focal = camera.focal(xc)[:, None, None]
+    z = xc[..., 2]
+    r = radius.to(z)
+    # A sphere at angle t off the optical axis images as an ellipse with semi-axes ~ f r / z (across) and
+    # f r / (z cos t) (radially); the area-preserving circle has radius f r / (z sqrt(cos t)).
+    zc = z.clamp_min(near)
+    rad = focal * r.unsqueeze(-1) / zc * (xc.norm(dim=-1) / zc).sqrt()
+    valid = (z > near).all(-1)
+    return Capsules2D(uv[..., 0, :], uv[..., 1, :], rad[..., 0], rad[..., 1], valid)
+
+
+def _uneven_capsule_sdf(p, pa, pb, ra, rb):
+    """Exact 2D signed distance to the convex hull of discs (pa, ra) and (pb, rb); broadcasting."""
+    p = p - pa
+    e = pb - pa
+    h = (e * e).sum(-1).clamp_min(1e-12)
+    qx = (p[..., 0] * e[..., 1] - p[..., 1] * e[..., 0]).abs() / h
+    qy = (p * e).sum(-1) / h
+    bdiff = ra - rb
+    cx2 = h - bdiff * bdiff
+    cx = cx2.clamp_min(0).sqrt()
+    k = cx * qy - bdiff * qx
+    m = cx * qx + bdiff * qy
+    nq = qx * qx + qy * qy
+    d_a = (h * nq).sqrt() - ra
+    d_b = (h * (nq + 1 - 2 * qy)).clamp_min(0).sqrt() - rb
+    d = torch.where(k < 0, d_a, torch.where(k > cx, d_b, m - ra))
+    # One disc inside the other: the hull is the larger disc.
+    nested = cx2 <= 1e-9
+    d_nested = torch.minimum(d_a, d_b)
+    return torch.where(nested, d_nested, d)
+
+
+def capsule_masks(
+    caps: Capsules2D,
+    height: int,
+    width: int,
+    *,
+    soft: float = 0.0,
+    chunk_size: int | None = None,
+) -> torch.Tensor:
+    """Rasterise projected capsules into silhouettes: pixel (i, j) (centre at u=j, v=i) is inside if it
+    lies in any capsule's convex hull of discs.
+
+    Args:
+        caps: :class:`Capsules2D` with batch dims ``...``; height, width: mask size (pixels, same pixel
+            frame as the capsules - use ``camera.resized`` for another resolution).
+        soft: 0 for a bool mask; > 0 for a float coverage ``sigmoid(-sdf / soft)`` (differentiable).
+        chunk_size: batch elements per chunk.
+
+    Returns:
+        (..., height, width) bool (``soft == 0``) or float mask.
+    """
+    batch = caps.pa.shape[:-2]
+    C = caps.pa.shape[-2]
+    pa, pb = caps.pa.reshape(-1, C, 1, 2), caps.pb.reshape(-1, C, 1, 2)
+    ra, rb = caps.ra.reshape(-1, C, 1), caps.rb.reshape(-1, C, 1)
+    valid = caps.valid.reshape(-1, C, 1)
+    v, u = torch.meshgrid(
+        torch.arange(height, dtype=pa.dtype, device=pa.device),
+        torch.arange(width, dtype=pa.dtype, device=pa.device),
+        indexing="ij",
+    )
+    grid = torch.stack([u, v], -1).reshape(1, 1, -1, 2)
+    n = _chunk_rows(C * height * width, chunk_size)
+    outs = []
+    for s in range(0, pa.shape[0], n):
+        sl = slice(s, s + n)
+        sdf = _uneven_capsule_sdf(grid, pa[sl], pb[sl], ra[sl], rb[sl])
+        sdf = torch.where(valid[sl], sdf, torch.full_like(sdf, float("inf")))
+        sdf = sdf.amin(1)
+        outs.append(sdf <= 0 if soft <= 0 else torch.sigmoid(-sdf / soft))
+    out = torch.cat(outs, 0)
+    return out.reshape(*batch, height, width)
+
+
+def sample_pattern(n: int, dim: int = 2, *, dtype=torch.float64, device=None, offset: float = 0.5):
+    """Fixed low-discrepancy points in [0, 1)^dim: the R_d sequence of M. Roberts (additive recurrence with
+    the generalised golden ratio). Deterministic, so a likelihood built on it is a smooth function of the
+    pose and the same for every call (common random numbers across particles)."""
+    # phi_d is the unique positive root of x^(d+1) = x + 1.
+    g = 2.0
+    for _ in range(64):
+        g = (1 + g) ** (1.0 / (dim + 1))
+    alpha = torch.tensor([g ** -(k + 1) for k in range(dim)], dtype=torch.float64)
+    i = torch.arange(1, n + 1, dtype=torch.float64)[:, None]
+    return torch.frac(offset + i * alpha).to(dtype=dtype, device=device)
+
+
+def _unit_samples(n_body: int, n_cap: int, generator, dtype, device, batch: tuple[int, ...] = ()):
+    if generator is None:
+        ub = sample_pattern(n_body, 2, dtype=dtype, device=device)
+        uc = sample_pattern(n_cap, 2, dtype=dtype, device=device, offset=0.25)
+        return ub, uc
+    ub = torch.rand(*batch, n_body, 2, generator=generator, dtype=dtype, device=device)
+    uc = torch.rand(*batch, 2, n_cap, 2, generator=generator, dtype=dtype, device=device)
+    return ub, uc
+
+
+def sample_in_capsules(
+    caps: Capsules2D,
+    n_body: int = 12,
+    n_cap: int = 2,
+    *,
+    generator: torch.Generator | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Area-uniform points inside each projected capsule, with the area each point stands for.
+
+    Each capsule is split into its trapezoid body and two outer half-discs; ``n_body`` points fill the
+    body with density proportional to the local width, ``n_cap`` points fill each half-disc. The region is
+    ``{p : |p - q(t)| <= r(t)}`` with ``q(t)`` the axis point nearest to ``p`` and ``r`` linear along the
+    axis, which equals the hull of the two discs up to a sliver of relative width ``((ra - rb) / L)^2``.
+
+    Args:
+        caps: :class:`Capsules2D` (..., C).
+        n_body, n_cap: points per capsule body and per end cap (M = n_body + 2 n_cap per capsule).
+        generator: None for the fixed quasi-random pattern of :func:`sample_pattern` (deterministic; the
+            same unit pattern mapped into every capsule), or a ``torch.Generator`` for i.i.d. points.
+
+    Returns:
+        points: (..., C * M, 2) pixels, capsule-major (capsule c owns rows ``c*M:(c+1)*M``).
+        weights: (..., C * M) pixel area per point (0 for invalid capsules); their sum over a capsule is
+        its area, differentiable with respect to the capsule parameters.
+    """
+    pa, pb, ra, rb = caps.pa, caps.pb, caps.ra, caps.rb
+    batch = pa.shape[:-1]
+    ub, uc = _unit_samples(n_body, n_cap, generator, pa.dtype, pa.device, batch)
+    e = pb - pa
+    L = e.norm(dim=-1).clamp_min(1e-9)
+    ex = e / L.unsqueeze(-1)
+    nx = torch.stack([-ex[..., 1], ex[..., 0]], -1)
+    # Body: t has density proportional to r(t) = ra + t (rb - ra) (inverse CDF of a linear density).
+    u, s = ub[..., 0], ub[..., 1]
+    ra_, rb_ = ra.unsqueeze(-1), rb.unsqueeze(-1)
+    qa = 0.5 * (rb_ - ra_)
+    qc = u * 0.5 * (ra_ + rb_)
+    t = 2 * qc / (ra_ + (ra_ * ra_ + 4 * qa * qc).clamp_min(0).sqrt()).clamp_min(1e-12)
+    rt = ra_ + t * (rb_ - ra_)
+    body = (
+        pa.unsqueeze(-2)
+        + (t * L.unsqueeze(-1)).unsqueeze(-1) * ex.unsqueeze(-2)
+        + ((2 * s - 1) * rt).unsqueeze(-1) * nx.unsqueeze(-2)
+    )
+    w_body = (L * (ra + rb) / n_body).unsqueeze(-1).expand(*batch, n_body)
+    # Caps: uniform in a half-disc facing away from the other end.
+    if uc.ndim == 2:
+        uc = uc.expand(2, n_cap, 2)
+    rho, phi = uc[..., 0].sqrt(), math.pi * (uc[..., 1] - 0.5)
+    caps_pts, caps_w = [], []
+    for k, (centre, rad, out) in enumerate(((pa, ra, -ex), (pb, rb, ex))):
+        rk, pk = rho[..., k, :], phi[..., k, :]
+        dirs = torch.cos(pk).unsqueeze(-1) * out.unsqueeze(-2) + torch.sin(pk).unsqueeze(-1) * nx.unsqueeze(
+            -2
+        )
+        caps_pts.append(centre.unsqueeze(-2) + (rk * rad.unsqueeze(-1)).unsqueeze(-1) * dirs)
+        caps_w.append((0.5 * math.pi * rad * rad / n_cap).unsqueeze(-1).expand(*batch, n_cap))
+    pts = torch.cat([body] + caps_pts, -2)  # (..., C, M, 2)
+    w = torch.cat([w_body] + caps_w, -1) * caps.valid.unsqueeze(-1)
+    C, M = pts.shape[-3], pts.shape[-2]
+    return pts.reshape(*batch[:-1], C * M, 2), w.reshape(*batch[:-1], C * M)
+
+
+def outline_points(caps: Capsules2D, n_side: int = 6, n_cap: int = 3) -> tuple[torch.Tensor, torch.Tensor]:
+    """Points on each projected capsule's outline: ``n_side`` along each flank (at ``r(t)`` from the axis)
+    and ``n_cap`` on each outer half-circle, at fixed stratified positions.
+
+    Returns:
+        points (..., C * M, 2) with M = 2 n_side + 2 n_cap, and valid (..., C * M) bool.
+    """
+    pa, pb, ra, rb = caps.pa, caps.pb, caps.ra, caps.rb
+    e = pb - pa
+    L = e.norm(dim=-1, keepdim=True).clamp_min(1e-9)
+    ex = e / L
+    nx = torch.stack([-ex[..., 1], ex[..., 0]], -1)
+    t = (torch.arange(n_side, dtype=pa.dtype, device=pa.device) + 0.5) / n_side
+    rt = ra.unsqueeze(-1) + t * (rb - ra).unsqueeze(-1)
+    axis = pa.unsqueeze(-2) + (t.unsqueeze(-1) * e.unsqueeze(-2))
+    sides = [axis + sgn * rt.unsqueeze(-1) * nx.unsqueeze(-2) for sgn in (1.0, -1.0)]
+    phi = math.pi * ((torch.arange(n_cap, dtype=pa.dtype, device=pa.device) + 0.5) / n_cap - 0.5)
+    cph, sph = torch.cos(phi).unsqueeze(-1), torch.sin(phi).unsqueeze(-1)
+    capl = []
+    for centre, rad, out in ((pa, ra, -ex), (pb, rb, ex)):
+        dirs = cph * out.unsqueeze(-2) + sph * nx.unsqueeze(-2)
+        capl.append(centre.unsqueeze(-2) + rad.unsqueeze(-1).unsqueeze(-1) * dirs)
+    pts = torch.cat(sides + capl, -2)
+    C, M = pts.shape[-3], pts.shape[-2]
+    valid = caps.valid.unsqueeze(-1).expand(*caps.valid.shape, M)
+    batch = pa.shape[:-2]
+    return pts.reshape(*batch, C * M, 2), valid.reshape(*batch, C * M)
+
+
+def capsule_coverage(
+    points: torch.Tensor,
+    caps: Capsules2D,
+    *,
+    softness: float = 0.0,
+    reduce: str = "max",
+    exclude_own: int | None = None,
+    chunk_size: int | None = None,
+) -> torch.Tensor:
+    """How much each image point is covered by the projected model (the ``f(p, x)`` of Fontmarty's dual
+    silhouette cue, §3.2.2).
+
+    Args:
+        points: (P, 2) points shared by every pose, or (..., P, 2) per pose (pixels).
+        caps: :class:`Capsules2D` (..., C).
+        softness: 0 for a hard 0/1 inside test; > 0 (pixels) for a linear ramp of that width across each
+            capsule boundary, which makes the result differentiable in the capsule parameters.
+        reduce: "max" (covered by the union, in [0, 1]) or "sum" (number of capsules covering the point).
+        exclude_own: with per-pose points laid out capsule-major, M points per capsule (as returned by
+            :func:`sample_in_capsules`/:func:`outline_points`), ignore each point's own capsule.
+        chunk_size: poses per chunk.
+
+    Returns:
+        (..., P) coverage.
+    """
+    batch = caps.pa.shape[:-2]
+    C = caps.pa.shape[-2]
+    pa, pb = caps.pa.reshape(-1, C, 2), caps.pb.reshape(-1, C, 2)
+    ra, rb = caps.ra.reshape(-1, C), caps.rb.reshape(-1, C)
+    valid = caps.valid.reshape(-1, C)
+    B = pa.shape[0]
+    P = points.shape[-2]
+    shared = points.ndim == 2
+    pts = points if shared else points.expand(*batch, P, 2).reshape(B, P, 2)
+    # Same quadratic-form trick as in 3D: two GEMMs give |p - a|^2 and the segment parameter of p.
+    center = pa.detach().reshape(-1, 2).mean(0) if pa.numel() else pa.new_zeros(2)  # see capsule_distance
+    pc = pts - center
+    Pt = torch.cat([pc, (pc * pc).sum(-1, keepdim=True), torch.ones_like(pc[..., :1])], -1)
+    PtT = Pt.transpose(-1, -2)
+    own = None
+    if exclude_own is not None:
+        own = torch.arange(P, device=pts.device) // exclude_own  # owner capsule of each point
+        own = own[None, :] == torch.arange(C, device=pts.device)[:, None]  # (C, P)
+    n = _chunk_rows(C * P, chunk_size)
+    outs = []
+    for s in range(0, B, n):
+        sl = slice(s, s + n)
+        a_, b_ = pa[sl] - center, pb[sl] - center
+        e = b_ - a_
+        ee = (e * e).sum(-1)
+        inv = torch.where(ee > 1e-12, 1.0 / ee.clamp_min(1e-12), torch.zeros_like(ee))
+        one = torch.ones_like(ee)[..., None]
+        A_uu = torch.cat([-2 * a_, one, (a_ * a_).sum(-1, keepdim=True)], -1)
+        A_s = torch.cat([e * inv[..., None], 0 * one, (-(a_ * e).sum(-1) * inv)[..., None]], -1)
+        m = A_uu.shape[0]
+        if shared:
+            G_uu = (A_uu.reshape(m * C, 4) @ PtT).view(m, C, P)
+            G_s = (A_s.reshape(m * C, 4) @ PtT).view(m, C, P)
+        else:
+            G_uu, G_s = torch.bmm(A_uu, PtT[sl]), torch.bmm(A_s, PtT[sl])
+        tc = G_s.clamp(0.0, 1.0)
+        d2 = G_uu - ee[..., None] * tc * (2 * G_s - tc)
+        r = ra[sl, :, None] + tc * (rb[sl] - ra[sl])[..., None]
+        if softness > 0:
+            # A ramp in distance, linearised in squared distance: (r^2 - d^2) / 2r ~ r - d near the boundary.
+            cov = (0.5 + (r * r - d2) / (2 * softness * r.clamp_min(1e-6))).clamp(0.0, 1.0)
+        else:
+            cov = (d2 <= r * r).to(pts.dtype)
+        keep = valid[sl, :, None]
+        if own is not None:
+            keep = keep & ~own
+        cov = cov * keep
+        outs.append(cov.amax(1) if reduce == "max" else cov.sum(1))
+    out = torch.cat(outs, 0) if outs else pts.new_zeros((0, P))
+    return out.reshape(*batch, P)

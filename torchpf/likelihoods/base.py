@@ -1,0 +1,153 @@
+"""The likelihood base: a body computed once from the poses, handed to every cue, and the registry of cues.
+
+A cue maps a :class:`Body` (the skeleton in poses ``theta``: joint positions and capsules, from one forward
+kinematics) and one frame's observation to log-likelihoods. :meth:`Likelihood.forward` computes the body
+and calls :meth:`Likelihood.log_likelihood_body`; :class:`~torchpf.likelihoods.ProductLikelihood` computes
+it once and hands it to each of its terms, so several cues share one FK without any hidden cache.
+
+Cues register by name in :data:`LIKELIHOODS` (``silhouette``, ``dual_silhouette``, ``overlap``,
+``pointcloud``, ``keypoints``, ``chamfer``, ``skin``), which :func:`~torchpf.likelihoods.make_likelihood`
+and the tracker's ``--likelihood`` read.
+
+Example::
+
+    body = Body.of(skel, theta)                     # theta (..., N, D): one FK
+    sil.log_likelihood_body(body, frame)            # (..., N), same as sil(theta, frame)
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from torchpf.distributions import flatten_batch
+from torchpf.observations import Frame, PointCloud, Silhouettes
+from torchpf.registry import Registry
+
+__all__ = ["LIKELIHOODS", "Body", "Likelihood"]
+
+LIKELIHOODS: Registry[type] = Registry("likelihood")
+"""Likelihood classes by name (``LIKELIHOODS.get("silhouette")``); an unknown name raises a ValueError that
+lists the registered ones."""
+
+
+@dataclass(frozen=True, eq=False)
+class Body:
+    """The body model in a batch of poses, computed once and shared by the likelihood terms.
+
+    Fields:
+        theta: (B, D) poses, the leading dims ``batch`` of the caller's (..., D) flattened into B.
+        batch: the leading dims (``...``) to restore on the way out.
+        joints: (B, J, 3) world joint positions (m), ``skeleton.fk(theta)``.
+        ends: (B, C, 2, 3) parent and child joint of each bone, the capsule axes (Hauberg §5).
+        radii: (C,) capsule radii (m), dtype and device of ``theta``.
+    """
+
+    theta: torch.Tensor
+    batch: torch.Size
+    joints: torch.Tensor
+    ends: torch.Tensor
+    radii: torch.Tensor
+
+    @classmethod
+    def of(cls, skeleton, theta: torch.Tensor, bone_index: torch.Tensor | None = None) -> Body:
+        """One forward kinematics of ``theta`` (..., D) for ``skeleton`` (anything with ``fk``, ``bones``
+        (C pairs of (parent, child) joint indices) and ``radii`` (C,), normally a :class:`torchpf.Skeleton`);
+        the capsules are the bones' joint pairs, as in ``Skeleton.capsules``. ``bone_index`` (C, 2): the
+        bones as a tensor already on the right device (default: made from ``skeleton.bones``)."""
+        flat, batch = flatten_batch(theta, 1)
+        joints = skeleton.fk(flat)
+        if bone_index is None:
+            bone_index = _bone_index(skeleton)
+        radii = skeleton.radii.to(device=joints.device, dtype=joints.dtype)
+        return cls(flat, batch, joints, joints[:, bone_index.to(joints.device)], radii)
+
+    def capsules(self, bones: Sequence[int] | None = None):
+        """Capsule ends ``a``, ``b`` (B, C', 3) and radii (C',) of all bones or of the subset ``bones``."""
+        ends, radii = self.ends, self.radii
+        if bones is not None:
+            ends, radii = ends[:, bones], radii[bones]
+        return ends[..., 0, :], ends[..., 1, :], radii
+
+
+class Likelihood(nn.Module):
+    """Base class of the cues: observation selection, the body computed once, batch dims restored.
+
+    Subclasses set ``obs_type`` (the container class), ``obs_field`` (its name in :class:`Frame`) and
+    ``needs_cameras`` (whether the constructor takes cameras after the skeleton), and implement
+    ``_log_lik(body, obs) -> (B,)`` on the flattened body.
+
+    Args:
+        skeleton: anything :meth:`Body.of` accepts, normally a :class:`torchpf.Skeleton`.
+        bones: optional subset of capsule indices the cue scores (e.g. one partition's limbs).
+    """
+
+    obs_type: type = object
+    obs_field: str = ""
+    needs_cameras: bool = False
+
+    def __init__(self, skeleton, bones: Sequence[int] | None = None):
+        super().__init__()
+        self.skeleton = skeleton
+        self.bones = None if bones is None else list(bones)
+        # The bones as an index buffer, so that it moves with the module and no FK call builds it.
+        self.register_buffer("bone_index", _bone_index(skeleton), persistent=False)
+
+    def select(self, obs):
+        """This cue's container in ``obs`` (the container itself, a :class:`Frame` or a dict holding it under
+        ``obs_field``), or None when the frame has none (the cue then contributes 0)."""
+        if obs is None or isinstance(obs, self.obs_type):
+            return obs
+        if isinstance(obs, Frame):
+            return getattr(obs, self.obs_field)
+        if isinstance(obs, Mapping):
+            return obs.get(self.obs_field)
+        if isinstance(obs, torch.Tensor) and self.obs_type in (PointCloud, Silhouettes):
+            return self.obs_type(obs)
+        raise TypeError(
+            f"{type(self).__name__} expects a {self.obs_type.__name__} or a Frame with field "
+            f"{self.obs_field!r}, got {type(obs).__name__}"
+        )
+
+    def body(self, theta: torch.Tensor) -> Body:
+        """The body of poses ``theta`` (..., D) for this cue's skeleton (one forward kinematics)."""
+        return Body.of(self.skeleton, theta, self.bone_index)
+
+    def forward(self, theta: torch.Tensor, obs) -> torch.Tensor:
+        """Log-likelihood (..., N) of poses ``theta`` (..., N, D) given one frame's ``obs``."""
+        if self.select(obs) is None:
+            return theta.new_zeros(theta.shape[:-1])
+        return self.log_likelihood_body(self.body(theta), obs)
+
+    def log_likelihood_body(self, body: Body, obs) -> torch.Tensor:
+        """Log-likelihood (..., N) of an already computed :class:`Body` given one frame's ``obs``."""
+        sel = self.select(obs)
+        if sel is None:
+            return body.theta.new_zeros(body.batch)
+        return self._log_lik(body, sel).reshape(body.batch)
+
+    def _log_lik(self, body: Body, obs) -> torch.Tensor:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+
+def _bone_index(skeleton) -> torch.Tensor:
+    return torch.as_tensor(skeleton.bones, dtype=torch.long).reshape(-1, 2)
+
+
+def resolve_joints(skeleton, joints) -> list[int]:
+    """Joint indices of ``joints`` (names or indices; None: all of ``skeleton.joint_names``)."""
+    names = list(skeleton.joint_names)
+    if joints is None:
+        return list(range(len(names)))
+    out = []
+    for j in joints:
+        if isinstance(j, int):
+            out.append(j)
+        elif j in names:
+            out.append(names.index(j))
+        else:
+            raise ValueError(f"unknown joint {j!r}; the skeleton has {names}")
+    return out

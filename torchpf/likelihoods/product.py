@@ -1,0 +1,108 @@
+"""Combination of cues (Fontmarty §3.2.4, Brubaker eq. 10) and construction by name.
+
+Example::
+
+    from torchpf.likelihoods import make_likelihood
+    lik = make_likelihood(skel, cameras, {"silhouette": 1.0, "pointcloud": 0.5})   # a ProductLikelihood
+    logw = lik(particles, frame)                                                   # (..., N)
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Mapping, Sequence
+
+import torch
+from torch import nn
+
+from torchpf.likelihoods.base import LIKELIHOODS, Body, Likelihood
+
+__all__ = ["ProductLikelihood", "make_likelihood"]
+
+
+class ProductLikelihood(nn.Module):
+    """Product of independent cues (Fontmarty §3.2.4, Brubaker eq. 10) with per-term exponents:
+    ``log p = sum_k w_k log p_k(theta, obs)``. An annealing exponent ``beta`` (APF layer) multiplies the
+    whole sum, so it composes: ``beta * lik(theta, obs)``.
+
+    Args:
+        terms: name -> likelihood module (or a sequence, named "0", "1", ...).
+        weights: name -> exponent (default 1 for each).
+
+    obs: a :class:`~torchpf.observations.Frame` (or a dict of the same fields); each term picks its field
+    and a missing field contributes 0. The body (forward kinematics) is computed once per call and handed to
+    every term (:meth:`Likelihood.log_likelihood_body`).
+    """
+
+    def __init__(self, terms, weights: Mapping[str, float] | Sequence[float] | None = None):
+        super().__init__()
+        if not isinstance(terms, Mapping):
+            terms = {str(i): t for i, t in enumerate(terms)}
+        self.terms = nn.ModuleDict(terms)
+        if weights is None:
+            weights = {k: 1.0 for k in terms}
+        elif not isinstance(weights, Mapping):
+            weights = dict(zip(terms, weights, strict=True))
+        unknown = set(weights) - set(terms)
+        if unknown:
+            raise ValueError(f"weights for unknown terms {sorted(unknown)}")
+        self.weights = {k: float(weights.get(k, 1.0)) for k in terms}
+
+    def _values(self, theta: torch.Tensor, obs, names) -> Iterator[tuple[str, torch.Tensor]]:
+        """(name, unweighted log-likelihood (..., N)) of the terms ``names``: the body of each skeleton is
+        computed once, on first need, and handed to every :class:`Likelihood` term; other modules are
+        called as ``term(theta, obs)``."""
+        bodies: dict[int, Body] = {}
+        for k in names:
+            term = self.terms[k]
+            if not isinstance(term, Likelihood):
+                yield k, term(theta, obs)
+            elif term.select(obs) is None:  # no data for this cue: no FK for it either
+                yield k, theta.new_zeros(theta.shape[:-1])
+            else:
+                key = id(term.skeleton)
+                if key not in bodies:
+                    bodies[key] = term.body(theta)
+                yield k, term.log_likelihood_body(bodies[key], obs)
+
+    def components(self, theta: torch.Tensor, obs) -> dict[str, torch.Tensor]:
+        """Unweighted log-likelihood (..., N) of each term, for diagnostics and tuning."""
+        return dict(self._values(theta, obs, list(self.terms)))
+
+    def forward(self, theta: torch.Tensor, obs) -> torch.Tensor:
+        """(..., N, D), Frame -> (..., N) weighted sum of the terms' log-likelihoods."""
+        total = theta.new_zeros(theta.shape[:-1])
+        for k, value in self._values(theta, obs, [k for k in self.terms if self.weights[k] != 0]):
+            total = total + self.weights[k] * value
+        return total
+
+
+def make_likelihood(skeleton, cameras, spec, options: Mapping[str, Mapping] | None = None) -> nn.Module:
+    """A likelihood module from a name, a list of names or ``{name: weight}`` (weights of the log terms).
+
+    Names are those of :data:`~torchpf.likelihoods.LIKELIHOODS`. ``options[name]`` holds constructor
+    keywords of that term (e.g. ``{"silhouette": {"sigma": 0.2}}``). A module ``spec`` is returned as is; one
+    name with weight 1 gives that cue itself, anything else a :class:`ProductLikelihood`.
+    """
+    if isinstance(spec, nn.Module):
+        return spec
+    options = dict(options or {})
+    weights = (
+        {spec: 1.0}
+        if isinstance(spec, str)
+        else dict(spec)
+        if isinstance(spec, Mapping)
+        else {name: 1.0 for name in spec}
+    )
+    terms = {}
+    for name in weights:
+        cls = LIKELIHOODS.get(name)
+        kwargs = dict(options.get(name, {}))
+        if not cls.needs_cameras:
+            terms[name] = cls(skeleton, **kwargs)
+        else:
+            if cameras is None or len(cameras) == 0:
+                raise ValueError(f"likelihood {name!r} needs cameras")
+            terms[name] = cls(skeleton, cameras, **kwargs)
+    if len(terms) == 1 and next(iter(weights.values())) == 1.0:
+        return next(iter(terms.values()))
+    return ProductLikelihood(terms, weights=weights)
