@@ -124,7 +124,7 @@ def test_dtype_follows_input(dtype):
     assert model.accepts(theta).dtype == torch.bool
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+@pytest.mark.cuda
 def test_model_moves_to_cuda():
     model = tiny_model().to("cuda")
     theta = near_mean_poses(tiny_model(), 5, 0.1).cuda()

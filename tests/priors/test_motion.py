@@ -272,7 +272,7 @@ def test_projected_prior_log_prob_is_the_embedding_gaussian(f22):
     torch.testing.assert_close(f22.fk(still), f22.fk(x_old), atol=1e-6, rtol=0)
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@pytest.mark.cuda
 def test_priors_follow_the_particles_device():
     f22 = Skeleton.from_urdf(path("fontmarty22.urdf")).cuda()  # own copy: the fixture stays on the CPU
     x = f22.clamp(torch.zeros(64, len(f22.dof_names))).cuda()

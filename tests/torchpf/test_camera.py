@@ -281,7 +281,7 @@ def test_bad_depth_camera_name(tmp_path):
         CameraRig([cam], depth_camera="nope")
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@pytest.mark.cuda
 def test_project_cuda():
     cam = random_camera(np.random.default_rng(7))
     X = torch.randn(100, 3, dtype=torch.float64)

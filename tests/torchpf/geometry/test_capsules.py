@@ -175,7 +175,7 @@ def test_raycast_matches_sphere_tracing():
     np.testing.assert_allclose(t_hit[conv].numpy(), t[conv].numpy(), atol=1e-6)
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@pytest.mark.cuda
 def test_capsule_distance_cuda():
     a, b, r = random_capsules(0)
     P = torch.randn(100, 3, dtype=torch.float64)

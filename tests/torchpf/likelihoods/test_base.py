@@ -82,7 +82,7 @@ def test_missing_data_contributes_nothing(skel, truth, rig, frame):
         sil(thetas, 3.0)
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@pytest.mark.cuda
 def test_likelihoods_cuda(skel, truth, rig, depth_cam, frame):
     thetas, _ = sweep(truth, skel, "LeftArm_Yrotation", n=5)
     for name, lik in make_liks(skel, rig, depth_cam).items():
