@@ -10,6 +10,7 @@ from scipy.optimize import least_squares
 
 from torchpf import Skeleton, ik
 from torchpf.assets import path
+from torchpf.kinematics import aba, jacobian
 
 
 @pytest.fixture(scope="module")
@@ -84,7 +85,7 @@ def test_tree_jacobian_matches_autograd(name, request):
     # the telescope's non-unit axes are normalised in float32 by pytorch-kinematics: 1e-8 relative
     atol = 1e-7 if name == "telescope" else 1e-12
     torch.testing.assert_close(
-        ik.tree_jacobian(skel, theta), ik.autograd_jacobian(skel, theta), atol=atol, rtol=0
+        jacobian.tree_jacobian(skel, theta), jacobian.autograd_jacobian(skel, theta), atol=atol, rtol=0
     )
 
 
@@ -100,18 +101,18 @@ def test_articulated_body_solve_matches_dense_cholesky(name, fused, request, mon
     g = torch.Generator().manual_seed(2)
     theta = _interior_poses(human, 4, seed=2)
     J, D, B = len(human.joint_names), len(human.dof_names), 4
-    ap, x = ik._frames(human, theta)
+    ap, x = jacobian.dof_frames(human, theta)
     rel = x - x[:1]
-    tree = ik._tree(human)
-    tw = ik._twists(tree, ap, x[0])
+    tree = human.tree
+    tw = jacobian.twists(tree, ap, x[0])
     r = 0.01 * torch.randn(J, 3, B, generator=g, dtype=torch.float64)
     w = torch.rand(J, B, generator=g, dtype=torch.float64)
     tau = 1e-3 * torch.randn(D, B, generator=g, dtype=torch.float64)
     arm = torch.full((D, B), 1e-3, dtype=torch.float64)
     free = torch.rand(D, B, generator=g) > 0.2
-    ours = ik._aba_solve(tree, tw, rel, w, r, tau, arm, free)
-    Jac = ik.autograd_jacobian(human, theta)
-    ref = ik._dense_solve(Jac, w.t(), r.permute(2, 0, 1), tau.t(), arm.t(), free.t()).t()
+    ours = aba.aba_solve(tree, tw, rel, w, r, tau, arm, free)
+    Jac = jacobian.autograd_jacobian(human, theta)
+    ref = aba.dense_solve(Jac, w.t(), r.permute(2, 0, 1), tau.t(), arm.t(), free.t()).t()
     torch.testing.assert_close(ours, ref, atol=1e-9, rtol=1e-7)
     assert torch.all(ours[~free] == 0)
 
@@ -144,7 +145,7 @@ def _scipy_reference(skel, targets, theta_init, reg, weights):
         return np.concatenate([sw * (x - g).ravel(), np.sqrt(reg) * (t - t0)])
 
     def jac(t):
-        Jm = ik.tree_jacobian(skel, torch.from_numpy(t)).reshape(-1, D).numpy()
+        Jm = jacobian.tree_jacobian(skel, torch.from_numpy(t)).reshape(-1, D).numpy()
         return np.concatenate([sw[:, None] * Jm, np.sqrt(reg) * np.eye(D)])
 
     sol = least_squares(
@@ -159,7 +160,7 @@ def _kkt_violation(skel, theta, targets, theta_init, reg, weights):
     Descent direction ``g = JᵀW r - μ (θ - θ_init)``: zero inside the limits, ``<= 0`` at a lower bound,
     ``>= 0`` at an upper bound.
     """
-    Jm = ik.autograd_jacobian(skel, theta)  # (J, 3, D)
+    Jm = jacobian.autograd_jacobian(skel, theta)  # (J, 3, D)
     r = targets - skel.fk(theta)
     g = torch.einsum("jkd,jk->d", Jm, weights[:, None] * r) - reg * (theta - theta_init)
     at_lo, at_hi = theta <= skel.lower + 1e-12, theta >= skel.upper - 1e-12

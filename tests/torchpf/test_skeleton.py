@@ -7,7 +7,7 @@ import torch
 
 from torchpf import Skeleton
 from torchpf.assets import build, path
-from torchpf.urdf import BodyJoint, Dof, build_urdf, floating_root_dofs
+from torchpf.kinematics.urdf import BodyJoint, Dof, build_urdf, floating_root_dofs
 
 # A URDF exercising what the shipped models do not: prismatic root joints with a rotated origin, fixed
 # joints in the middle of a chain, non-unit and non-principal axes, rpy origins, a continuous joint, a link
