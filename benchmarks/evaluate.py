@@ -22,9 +22,9 @@ This script runs that protocol with :class:`torchpf.Tracker`:
   else (``--dynamics table5``) :func:`table5_std` here;
 * every filter is initialised from the first ground-truth frame and gets the same budget ``N``: SIR/QRS run
   ``N`` particles, the APF 3 layers of ``N/3``, the partitioned filters ``M`` stages of ``N/M`` (``M = 5``:
-  torso then each limb, :func:`torchpf.tracker.body_partition`), the MCMC filter ``N / (1 + moves (L + 1))``
-  particles, each HMC move costing ``L + 1`` likelihood gradients (counted as evaluations; a gradient costs
-  more wall time, which the time column shows).
+  torso then each limb, :func:`torchpf.kinematics.body_partition`), the MCMC filter
+  ``N / (1 + moves (L + 1))`` particles, each HMC move costing ``L + 1`` likelihood gradients (counted as
+  evaluations; a gradient costs more wall time, which the time column shows).
 
 Criteria (Fontmarty eq. 3-6, :mod:`torchpf.metrics`), over ``J`` evaluated joints, ``K`` frames and ``R``
 runs, ``m_j^{t_k}`` the true and ``m_j^{k,r}`` the estimated (MMSE) position of joint ``j``::
@@ -82,10 +82,11 @@ if str(REPO) not in sys.path:  # run as a script from anywhere: `training` is a 
 from torchpf import Skeleton, metrics  # noqa: E402
 from torchpf.assets import path as asset_path  # noqa: E402
 from torchpf.camera import camera_ring  # noqa: E402
+from torchpf.kinematics import body_partition  # noqa: E402
 from torchpf.observations import DistanceMaps  # noqa: E402
 from torchpf.proposals import GaussianRandomWalk  # noqa: E402
 from torchpf.synth import SynthOptions, synthesize  # noqa: E402
-from torchpf.tracker import Tracker, available_dynamics, body_partition, make_dynamics  # noqa: E402
+from torchpf.tracker import Tracker, available_dynamics, make_dynamics  # noqa: E402
 
 FILTER_LABELS = {
     "sir": "CONDENSATION",
