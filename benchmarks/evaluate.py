@@ -389,12 +389,12 @@ def table5_std(skeleton: Skeleton, fps: float = TABLE5_FPS, scale: float = 1.0) 
     ``std * sqrt(5 / fps)`` per frame (the registered ``random_walk`` prior uses the same rule), times
     ``scale``.
     """
-    root = skeleton.joint_names[skeleton.parents.index(-1)]
+    root, revolute = skeleton.parents.index(-1), skeleton.dof_revolute.tolist()
     std = torch.full((len(skeleton.dof_names),), OTHER_STD, dtype=torch.float64)
     for d, name in enumerate(skeleton.dof_names):
         joint = name.rsplit("_", 1)[0]
-        if joint == root:
-            std[d] = TABLE5["root_translation" if "position" in name else "root_rotation"]
+        if skeleton.dof_joints[d] == root:
+            std[d] = TABLE5["root_rotation" if revolute[d] else "root_translation"]
         elif joint in TABLE5_JOINTS:
             std[d] = TABLE5[TABLE5_JOINTS[joint]]
         elif joint in SPINE_JOINTS:

@@ -262,8 +262,7 @@ def table5_sigma(skeleton, fps: float = TABLE5_FPS, scale: float = 1.0) -> torch
     sigma = []
     for d, j in enumerate(owner):
         if j >= 0 and parents[j] < 0:
-            kind = skeleton.chain.find_joint(skeleton.dof_names[d]).joint_type
-            s = TABLE5["base_translation"] if kind == "prismatic" else TABLE5["base_rotation"]
+            s = TABLE5["base_rotation"] if skeleton.dof_revolute[d] else TABLE5["base_translation"]
         else:
             joint = names[j] if j >= 0 else ""
             s = next((v for pattern, v in _GROUPS if re.search(pattern, joint)), 0.05)
