@@ -70,8 +70,8 @@ import numpy as np
 import torch
 
 from torchpf.io import MocapFormatError, parse_float_table, read_mocap_csv, write_mocap_csv
-from torchpf.skeleton import Skeleton
 from torchpf.kinematics.urdf import ROOT_TRANSLATION_LIMIT, BodyJoint, Dof, build_urdf
+from torchpf.skeleton import Skeleton
 
 #: Metres per file unit of the CMU BVH conversions (``load_bvh(path, scale=CMU_SCALE)``).
 CMU_SCALE = 0.056444
