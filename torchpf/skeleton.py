@@ -11,6 +11,10 @@ particle filter step, IK iteration and annealing layer.
   body joint, static offsets are precomputed, and the tree is traversed one depth level at a time (one
   batched product per level, no Python loop over joints at call time).
 * Transforms are carried as rotation ``(..., 3, 3)`` and translation ``(..., 3)`` instead of 4x4 matrices.
+* The topology (body joints, nodes and their runs, depth levels, revolute mask, bones, partition) is a public
+  :class:`~torchpf.kinematics.tree.KinematicTree`, ``skel.tree``, which the IK Jacobian and the
+  articulated-body solve (:mod:`torchpf.kinematics`) read too; this module adds the geometry (the fused
+  run coefficients, the capsule radii) and the kernel. URDF reading is :mod:`torchpf.kinematics.urdf`.
 
 Conventions (those of URDF and pytorch-kinematics): column vectors, ``p_world = R @ p_local + t``; a link's
 frame is ``T_parent @ T_origin @ M(q)`` with ``M`` a rotation of ``q`` rad about (revolute) or a translation
@@ -37,11 +41,12 @@ import torch
 from torch import nn
 
 from torchpf.distributions import flatten_batch, unflatten_batch
-from torchpf.kinematics.tree import KinematicTree, _is_identity, partition_labels
+from torchpf.kinematics.tree import KinematicTree, partition_labels
 from torchpf.kinematics.urdf import (
     Frame,
     build_chain,
     flatten_chain,
+    is_identity,
     link_geometry,
     parse_urdf_xml,
     read_urdf_text,
@@ -212,7 +217,7 @@ class Skeleton(nn.Module):
                     not geometry.get(f.name)
                     and len(kids) == 1
                     and frames[kids[0]].joint_type != "fixed"
-                    and (f.parent < 0 or _is_identity(frames[kids[0]].static))
+                    and (f.parent < 0 or is_identity(frames[kids[0]].static))
                 )
                 if not intermediate:
                     chosen.add(i)
@@ -342,7 +347,7 @@ class Skeleton(nn.Module):
     # ------------------------------------------------------------------ kernel
     def _constants(self, dtype: torch.dtype, device: torch.device) -> dict:
         """The kernel's constants in ``dtype`` on ``device``, built once (the tree's cache)."""
-        return self.tree.cached(("fk", dtype, device), lambda: self._build_constants(dtype, device))
+        return self.tree.cached(("fk", device, dtype), lambda: self._build_constants(dtype, device))
 
     def _build_constants(self, dtype: torch.dtype, device: torch.device) -> dict:
         c: dict = {}

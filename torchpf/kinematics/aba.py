@@ -115,11 +115,8 @@ class _Bodies:
 
         return tree.cached(("aba", "kernel"), build)
 
-    def on(self, tree: KinematicTree, device, dtype) -> dict:
-        """The index and constant tensors on ``device`` (floats in ``dtype``), cached on the tree."""
-        return tree.cached(("aba", device, dtype), lambda: self._constants(device, dtype))
-
-    def _constants(self, device, dtype) -> dict:
+    def constants(self, device, dtype) -> dict:
+        """The index and constant tensors on ``device`` (floats in ``dtype``)."""
         D, J = len(self.delta_gather), len(self.point_body)
         levels = []
         for li, (members, dofs, k, parent_pos, has) in enumerate(self.levels):
@@ -153,6 +150,11 @@ class _Bodies:
             .to(device),
             "inertia_index": _inertia_index().to(device),
         }
+
+
+def _constants(tree: KinematicTree, device, dtype) -> dict:
+    """:meth:`_Bodies.constants` of ``tree``, cached on the tree."""
+    return tree.cached(("aba", device, dtype), lambda: _Bodies.of(tree).constants(device, dtype))
 
 
 def _inertia_index() -> Tensor:
@@ -215,7 +217,7 @@ def body_inertia(tree: KinematicTree, rel: Tensor, w: Tensor) -> Tensor:
     Summed as moments ``(Σ w, Σ w y, Σ w y yᵀ)`` per body, then arranged (:func:`_inertia_index`) as
     ``[[tr(S) I - S, [h]x], [-[h]x, m I]]``. The last row collects points that no DOF moves.
     """
-    c = _Bodies.of(tree).on(tree, rel.device, rel.dtype)
+    c = _constants(tree, rel.device, rel.dtype)
     J, B = rel.shape[0], rel.shape[-1]
     wy = w[:, None] * rel
     moments = torch.cat([w[:, None], wy, wy * rel, wy[:, [0, 0, 1]] * rel[:, [1, 2, 2]]], 1)  # (J, 10, B)
@@ -250,13 +252,13 @@ def aba_solve(
     is that system's joint acceleration from rest: Featherstone's articulated-body algorithm, with world-frame
     spatial vectors (no coordinate transforms between bodies), one level of the tree at a time.
     """
-    bodies = _Bodies.of(tree)
-    c = bodies.on(tree, tw.device, tw.dtype)
+    c = _constants(tree, tw.device, tw.dtype)
     D, _, B = tw.shape
     freef = free.to(tw.dtype)
     if fused_kernel_applies(tw, rel, w, r, tau, arm):
         from torchpf.kinematics import _aba_cpu
 
+        bodies = _Bodies.of(tree)
         structure = bodies.kernel_structure(tree)
         return _aba_cpu.aba_solve(structure, tw, rel, w, r, tau, arm, freef, bodies.point_body_np)
     if inertia is None:

@@ -33,11 +33,9 @@ from typing import TypeVar
 import torch
 from torch import Tensor, nn
 
+from torchpf.kinematics.urdf import is_identity
+
 T = TypeVar("T")
-
-
-def _is_identity(m: Tensor) -> bool:
-    return bool(torch.allclose(m, torch.eye(4, dtype=m.dtype), atol=1e-12, rtol=0))
 
 
 class KinematicTree(nn.Module):
@@ -138,7 +136,7 @@ class KinematicTree(nn.Module):
 
         def foldable(i):
             f = frames[i]
-            return i not in body_set and len(f.children) == 1 and _is_identity(frames[f.children[0]].static)
+            return i not in body_set and len(f.children) == 1 and is_identity(frames[f.children[0]].static)
 
         needed = set(body)
         for i in body:

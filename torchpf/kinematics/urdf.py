@@ -231,6 +231,11 @@ class Frame:
     children: list[int]
 
 
+def is_identity(static: torch.Tensor) -> bool:
+    """Whether a (4, 4) frame origin (:attr:`Frame.static`) is the identity, to 1e-12."""
+    return bool(torch.allclose(static, torch.eye(4, dtype=static.dtype), atol=1e-12, rtol=0))
+
+
 def read_urdf_text(path_or_xml: str | os.PathLike) -> tuple[str, str]:
     """(xml text, where it came from) for a URDF path or an XML string (one that starts with ``<``)."""
     if isinstance(path_or_xml, str) and path_or_xml.lstrip().startswith("<"):
