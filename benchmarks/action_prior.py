@@ -142,7 +142,7 @@ def main(argv: list[str] | None = None) -> None:
     joints = skel.joint_names
     bones = [
         c
-        for c, (_, child) in enumerate(skel._bone_index.tolist())
+        for c, (_, child) in enumerate(skel.bones)
         if not any(k in joints[child].lower() for k in ("finger", "thumb", "handindex"))
     ]
     Lik = SilhouetteLikelihood if args.likelihood == "silhouette" else OverlapLikelihood

@@ -22,9 +22,9 @@ This script runs that protocol with :class:`torchpf.Tracker`:
   else (``--dynamics table5``) a plain Gaussian walk with :func:`priors.table5.table5_sigma`;
 * every filter is initialised from the first ground-truth frame and gets the same budget ``N``: SIR/QRS run
   ``N`` particles, the APF 3 layers of ``N/3``, the partitioned filters ``M`` stages of ``N/M`` (``M = 5``:
-  torso then each limb, :func:`torchpf.tracker.body_partition`), the MCMC filter ``N / (1 + moves (L + 1))``
-  particles, each HMC move costing ``L + 1`` likelihood gradients (counted as evaluations; a gradient costs
-  more wall time, which the time column shows).
+  torso then each limb, :func:`torchpf.kinematics.body_partition`), the MCMC filter
+  ``N / (1 + moves (L + 1))`` particles, each HMC move costing ``L + 1`` likelihood gradients (counted as
+  evaluations; a gradient costs more wall time, which the time column shows).
 
 Criteria (Fontmarty eq. 3-6, :mod:`torchpf.metrics`), over ``J`` evaluated joints, ``K`` frames and ``R``
 runs, ``m_j^{t_k}`` the true and ``m_j^{k,r}`` the estimated (MMSE) position of joint ``j``::

@@ -30,6 +30,7 @@ import torch
 
 from torchpf import Skeleton, ik
 from torchpf.assets import path
+from torchpf.kinematics.jacobian import tree_jacobian
 
 CLIP = Path(__file__).resolve().parents[2] / "shared" / "mocap" / "cmu" / "35_02.bvh"
 
@@ -105,7 +106,7 @@ def main(argv=None) -> None:
         os.environ.pop("TORCHPF_FUSED")
     print(f"poses: {source}; start = previous frame, targets = FK(next frame) + noise")
     # DOFs that joint positions determine: the rank of the Jacobian at a typical pose
-    rank = int(torch.linalg.matrix_rank(ik.tree_jacobian(skel, prev[0].double()).reshape(3 * J, D)))
+    rank = int(torch.linalg.matrix_rank(tree_jacobian(skel, prev[0].double()).reshape(3 * J, D)))
     floor = args.noise * (3 - rank / J) ** 0.5
     print(f"least-squares noise floor: noise * sqrt(3 - rank/J) = {floor * 1000:.2f} mm (rank {rank})")
     eager = {n: t / n for label, n, t, *_ in rows if label == "tree-eager"}

@@ -49,6 +49,7 @@ from torchpf import Skeleton, ik
 from torchpf.assets import path
 from torchpf.camera import look_at
 from torchpf.filters import ParticleFilter
+from torchpf.kinematics.jacobian import tree_jacobian
 from torchpf.likelihoods import PointCloudLikelihood
 from torchpf.observations import Frame, PointCloud
 from torchpf.synth import synthesize
@@ -80,7 +81,7 @@ def _sequence(skel: Skeleton, frames: int, step: int, start: int, n_points: int)
     # In place, like the paper's subject standing in front of the camera: the root translation DOFs that move
     # the root horizontally (BVH is y-up: X and Z) keep their first value; the vertical bob, the pelvis
     # rotations and all limb motion stay.
-    jac = ik.tree_jacobian(skel, truth[0])[0]  # (3, D) at the root joint
+    jac = tree_jacobian(skel, truth[0])[0]  # (3, D) at the root joint
     for name in ("Hips_Xposition", "Hips_Yposition", "Hips_Zposition"):
         d = skel.dof_names.index(name)
         if jac[2, d].abs() < 0.5:

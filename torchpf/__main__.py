@@ -154,7 +154,7 @@ def _evaluate(args) -> int:
     est_angles = torch.stack(runs)
     truth, est = skel.fk(truth_angles), skel.fk(est_angles)
     table = metrics.evaluate(truth, est, args.threshold)
-    revolute = torch.tensor(["position" not in n and not n.endswith(("_tx", "_ty", "_tz")) for n in names])
+    revolute = skel.dof_revolute
     table["angle_mse"] = float(metrics.angle_mse(truth_angles, est_angles, revolute))
     units = {"angle_mse": "rad^2", "failure_rate": ""}
     print(f"{len(runs)} run(s), {truth_angles.shape[0]} frames, {len(skel.joint_names)} joints")

@@ -11,6 +11,10 @@ particle filter step, IK iteration and annealing layer.
   body joint, static offsets are precomputed, and the tree is traversed one depth level at a time (one
   batched product per level, no Python loop over joints at call time).
 * Transforms are carried as rotation ``(..., 3, 3)`` and translation ``(..., 3)`` instead of 4x4 matrices.
+* The topology (body joints, nodes and their runs, depth levels, revolute mask, bones, partition) is a public
+  :class:`~torchpf.kinematics.tree.KinematicTree`, ``skel.tree``, which the IK Jacobian and the
+  articulated-body solve (:mod:`torchpf.kinematics`) read too; this module adds the geometry (the fused
+  run coefficients, the capsule radii) and the kernel. URDF reading is :mod:`torchpf.kinematics.urdf`.
 
 Conventions (those of URDF and pytorch-kinematics): column vectors, ``p_world = R @ p_local + t``; a link's
 frame is ``T_parent @ T_origin @ M(q)`` with ``M`` a rotation of ``q`` rad about (revolute) or a translation
@@ -31,94 +35,24 @@ Example::
 from __future__ import annotations
 
 import os
-import warnings
-import xml.etree.ElementTree as ET
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
 
 import torch
 from torch import nn
 
+from torchpf.distributions import flatten_batch, unflatten_batch
+from torchpf.kinematics.tree import KinematicTree, partition_labels
+from torchpf.kinematics.urdf import (
+    Frame,
+    build_chain,
+    flatten_chain,
+    is_identity,
+    link_geometry,
+    parse_urdf_xml,
+    read_urdf_text,
+)
+
 _REVOLUTE, _PRISMATIC = "revolute", "prismatic"
-
-
-@dataclass
-class _Frame:
-    """One pytorch-kinematics frame (a link and the joint above it), flattened."""
-
-    name: str
-    parent: int
-    static: torch.Tensor  # (4, 4) float64: link offset @ joint offset
-    joint_type: str  # "fixed" | "revolute" | "prismatic"
-    axis: torch.Tensor  # (3,) float64
-    dof: int  # index into dof_names, -1 if fixed
-    children: list[int]
-
-
-def _read_urdf_text(path_or_xml: str | os.PathLike) -> tuple[str, str]:
-    """(xml text, where it came from) for a URDF path or an XML string."""
-    if isinstance(path_or_xml, str) and path_or_xml.lstrip().startswith("<"):
-        return path_or_xml, "<urdf string>"
-    path = os.fspath(path_or_xml)
-    if not os.path.isfile(path):
-        raise FileNotFoundError(f"URDF file not found: {path}")
-    with open(path, encoding="utf-8") as f:
-        return f.read(), path
-
-
-def _link_geometry(root: ET.Element) -> dict[str, list[tuple[str | None, float | None]]]:
-    """link name -> [(element name, radius or None)] for every <collision>/<visual> of the link."""
-    geoms: dict[str, list[tuple[str | None, float | None]]] = {}
-    for link in root.iter("link"):
-        entries = []
-        for el in [*link.findall("collision"), *link.findall("visual")]:
-            radius = None
-            geom = el.find("geometry")
-            if geom is not None:
-                for kind in ("capsule", "cylinder", "sphere"):
-                    g = geom.find(kind)
-                    if g is not None and g.get("radius") is not None:
-                        radius = float(g.get("radius"))
-                        break
-            entries.append((el.get("name"), radius))
-        geoms[link.get("name")] = entries
-    return geoms
-
-
-def _flatten_chain(chain) -> list[_Frame]:
-    dof_index = {n: i for i, n in enumerate(chain.get_joint_parameter_names())}
-    frames: list[_Frame] = []
-
-    def matrix(t):
-        if t is None:
-            return torch.eye(4, dtype=torch.float64)
-        return t.get_matrix().reshape(4, 4).to(torch.float64)
-
-    def visit(frame, parent):
-        joint = frame.joint
-        jt = joint.joint_type
-        me = _Frame(
-            name=frame.name.strip("\n"),
-            parent=parent,
-            static=matrix(frame.link.offset) @ matrix(joint.offset),
-            joint_type=jt,
-            axis=joint.axis.detach().to(torch.float64).reshape(3),
-            dof=dof_index[joint.name] if jt != "fixed" else -1,
-            children=[],
-        )
-        frames.append(me)
-        idx = len(frames) - 1
-        if parent >= 0:
-            frames[parent].children.append(idx)
-        for child in frame.children:
-            visit(child, idx)
-
-    visit(chain._root, -1)
-    return frames
-
-
-def _is_identity(m: torch.Tensor) -> bool:
-    return bool(torch.allclose(m, torch.eye(4, dtype=m.dtype), atol=1e-12, rtol=0))
 
 
 def _skew(a: torch.Tensor) -> torch.Tensor:
@@ -200,12 +134,15 @@ class Skeleton(nn.Module):
     Build with :meth:`from_urdf`. Attributes:
 
     * ``chain``: the pytorch-kinematics chain the kernel was compiled from.
+    * ``tree``: the :class:`~torchpf.kinematics.tree.KinematicTree` (index tensors of the topology) that
+      the FK kernel, the IK Jacobian and the articulated-body solve share.
     * ``dof_names`` (D): the pose vector's order (``chain.get_joint_parameter_names()``).
     * ``joint_names`` (J): the body joints, parents before children; ``parents`` (J) index into them, ``-1``
-      for the root.
+      for the root (``tree.parents`` as a list).
     * ``lower``, ``upper`` (D,): joint limits (rad or m; +-inf where the URDF gives none).
-    * ``dof_joints`` (D): for each DOF, the body joint it moves (the joint at the end of its run).
-    * ``bones`` (C): (parent, child) joint indices of the capsules; ``radii`` (C,) in metres.
+    * ``dof_joints`` (D): for each DOF, the body joint it moves (the joint at the end of its run;
+      ``tree.dof_joint`` as a list).
+    * ``bones`` (C): (parent, child) joint indices of the capsules (``tree.bones``); ``radii`` (C,) in metres.
     """
 
     def __init__(
@@ -219,24 +156,28 @@ class Skeleton(nn.Module):
         super().__init__()
         self.chain = chain
         self.source = source
-        try:
-            root = ET.fromstring(urdf_xml)
-        except ET.ParseError as e:
-            raise ValueError(f"{source}: invalid URDF XML ({e})") from None
-        geometry = _link_geometry(root)
-        frames = _flatten_chain(chain)
+        geometry = link_geometry(parse_urdf_xml(urdf_xml, source))
+        frames = flatten_chain(chain)
         self.dof_names: list[str] = list(chain.get_joint_parameter_names())
         lower, upper = chain.get_joint_limits()
         self.register_buffer("lower", torch.tensor(lower, dtype=torch.float64), persistent=False)
         self.register_buffer("upper", torch.tensor(upper, dtype=torch.float64), persistent=False)
 
-        self._cache: dict[tuple, dict] = {}
         body = self._body_frames(frames, geometry, joint_names, source)
         self.joint_names: list[str] = [frames[i].name for i in body]
         # Rows of chain.forward_kinematics_tensor(...) that hold the body joints (for cross-checks).
         self.pk_frame_indices = torch.tensor([chain.frame_to_idx[n] for n in self.joint_names])
-        self._compile(frames, body)
-        self._build_capsules(geometry, radii or {})
+        # bones and the partition need the rest pose, i.e. the compiled kernel: set once it is
+        self.tree = KinematicTree.from_frames(frames, body, len(self.dof_names))
+        self.parents: list[int] = self.tree.parents.tolist()
+        self.dof_joints: list[int] = self.tree.dof_joint.tolist()
+        self._compile(frames)
+        rest = self.fk(torch.zeros(len(self.dof_names), dtype=torch.float64))
+        self._build_capsules(frames, body, rest, geometry, radii or {})
+        self.tree = self.tree.replace(
+            bones=torch.tensor(self.bones, dtype=torch.long).reshape(-1, 2),
+            joint_part=partition_labels(self.parents, rest),
+        )
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -255,28 +196,12 @@ class Skeleton(nn.Module):
         single movable joint (the world of a floating base) is not a body joint either. ``radii`` maps a child
         joint name to the radius (m) of the capsule ending there and overrides the URDF.
         """
-        import pytorch_kinematics as pk
-        from pytorch_kinematics.urdf_parser_py.xml_reflection import core as xml_core
-
-        xml, source = _read_urdf_text(path_or_xml)
-        # The URDF parser prints its complaints to stderr; the optional ``name`` of <collision>/<visual>
-        # (URDF spec, used here for capsule radii) is among them. Keep the rest as warnings.
-        complaints: list[str] = []
-        saved = xml_core.on_error
-        xml_core.on_error = complaints.append
-        try:
-            chain = pk.build_chain_from_urdf(xml.encode("utf-8"))
-        except Exception as e:  # the URDF parser raises many types on malformed input
-            raise ValueError(f"{source}: cannot build a kinematic chain ({type(e).__name__}: {e})") from e
-        finally:
-            xml_core.on_error = saved
-        for msg in complaints:
-            if not ('Unknown attribute "name"' in msg and ("/collision" in msg or "/visual" in msg)):
-                warnings.warn(f"{source}: {msg}", stacklevel=2)
+        xml, source = read_urdf_text(path_or_xml)
+        chain = build_chain(xml, source)
         return cls(chain, xml, joint_names=joint_names, radii=radii, source=source)
 
     @staticmethod
-    def _body_frames(frames, geometry, joint_names, source) -> list[int]:
+    def _body_frames(frames: list[Frame], geometry, joint_names, source) -> list[int]:
         if joint_names is not None:
             index = {f.name: i for i, f in enumerate(frames)}
             missing = [n for n in joint_names if n not in index]
@@ -292,79 +217,48 @@ class Skeleton(nn.Module):
                     not geometry.get(f.name)
                     and len(kids) == 1
                     and frames[kids[0]].joint_type != "fixed"
-                    and (f.parent < 0 or _is_identity(frames[kids[0]].static))
+                    and (f.parent < 0 or is_identity(frames[kids[0]].static))
                 )
                 if not intermediate:
                     chosen.add(i)
         return sorted(chosen)  # depth-first order: parents come first
 
-    def _compile(self, frames: list[_Frame], body: list[int]) -> None:
-        """Fuse each body joint's run of single-DOF frames into one local transform; order by depth.
+    def _compile(self, frames: list[Frame]) -> None:
+        """Fuse each node's run of single-DOF frames into one local transform, grouped by motion signature.
 
         The local transform of a run, ``S @ M_1(q_1) @ ... @ M_m(q_m)`` (``S`` the static origin), is
         multilinear in per-DOF features: ``(cos q, sin q, 1)`` for a revolute DOF (Rodrigues:
         ``M = cos q (I - a a^T) + sin q [a]_x + a a^T``) and ``(q, 1)`` for a prismatic one. So its 12
         entries (3x4) are one product ``W @ monomials`` with ``W`` precomputed here: a ball joint costs one
-        (12 x 27) @ (27 x B) product instead of three rotations and two matrix products.
+        (12 x 27) @ (27 x B) product instead of three rotations and two matrix products. The nodes, their
+        runs and their level order are the tree's (:meth:`KinematicTree.from_frames`).
         """
-        body_set = set(body)
-        self._consts: dict[str, torch.Tensor] = {}
-
-        # Internal nodes: body joints plus frames that cannot be folded into their single child's run
-        # (several children, or a child whose origin is not the identity).
-        def foldable(i):
-            f = frames[i]
-            return i not in body_set and len(f.children) == 1 and _is_identity(frames[f.children[0]].static)
-
-        needed = set(body)
-        for i in body:
-            j = frames[i].parent
-            while j >= 0 and j not in needed:
-                if not foldable(j):
-                    needed.add(j)
-                j = frames[j].parent
-        nodes = sorted(needed)
-        node_of = {f: n for n, f in enumerate(nodes)}
-
-        parent, runs, statics, depth = [], [], [], []
-        for i in nodes:
-            run = [i]
-            j = frames[i].parent
-            while j >= 0 and j not in needed:
+        tree = self.tree
+        node_frame, node_parent = tree.node_frame.tolist(), tree.node_parent.tolist()
+        M = len(node_frame)
+        statics, runs = [], []
+        for r in range(M):
+            stop = node_frame[node_parent[r]] if node_parent[r] >= 0 else -1
+            run, j = [], node_frame[r]
+            while j != stop:
                 run.append(j)
                 j = frames[j].parent
             run.reverse()
             # Every static origin but the first is the identity (that is what made the frames foldable).
-            parent.append(node_of[j] if j >= 0 else -1)
             statics.append(frames[run[0]].static)
             runs.append(
                 [(frames[k].joint_type, frames[k].axis, frames[k].dof) for k in run if frames[k].dof >= 0]
             )
-            depth.append(0 if parent[-1] < 0 else depth[parent[-1]] + 1)
-
-        # Level order: each depth level is a contiguous block of rows.
-        order = []
-        for d in range(max(depth) + 1):
-            # siblings by their parent's rank, so that a level's parents are often one contiguous block
-            at_d = [n for n in range(len(nodes)) if depth[n] == d]
-            prev_rank = {n: r for r, n in enumerate(order)}
-            order += sorted(at_d, key=lambda n: (prev_rank.get(parent[n], -1), n))
-        rank = {n: r for r, n in enumerate(order)}
-        self._levels = []
-        for d in range(max(depth) + 1):
-            rows = [r for r, n in enumerate(order) if depth[n] == d]
-            # parents index into the previous level's block
-            parent_rows = None
-            if d > 0:
-                parent_rows = torch.tensor([rank[parent[order[r]]] - self._levels[-1][0] for r in rows])
-            self._levels.append((rows[0], rows[-1] + 1, parent_rows))
 
         # Group the nodes by motion signature (e.g. three revolutes for a ball joint).
         groups: dict[tuple[str, ...], list[int]] = {}
-        for r, n in enumerate(order):
-            groups.setdefault(tuple(t for t, _, _ in runs[n]), []).append(r)
-        self._groups = []
+        for r in range(M):
+            groups.setdefault(tuple(t for t, _, _ in runs[r]), []).append(r)
+        self._groups: list[tuple[str, ...]] = []
         self._axis_pivots: list[bool] = []
+        # float64 coefficients per group, (W (n, 12, P), WA (n, 12 + 3m or 12 + 6m, P) or None): cast to the
+        # compute dtype in the tree's cache (plain attributes: module.to(dtype) must not round them)
+        self._coefficients: list[tuple[torch.Tensor, torch.Tensor | None]] = []
         concat = []
         D = len(self.dof_names)
         # Where each DOF's world axis and pivot are found (see :meth:`_world`): its row in the
@@ -372,18 +266,18 @@ class Skeleton(nn.Module):
         # revolute DOF turns about its node's origin unless a prismatic DOF follows it in the run). A DOF in
         # no run (below every body joint) points at an appended zero axis.
         axis_rows, pivot_rows = [-1] * D, [0] * D
-        n_axis_rows, n_pivot_rows = 0, len(order)
+        n_axis_rows, n_pivot_rows = 0, M
         for g, (sig, members) in enumerate(groups.items()):
-            W = torch.stack([_run_coefficients(statics[order[r]], runs[order[r]]) for r in members])
-            dofs = torch.tensor([[dof for _, _, dof in runs[order[r]]] for r in members], dtype=torch.long)
-            self._consts[f"W{g}"] = W  # (n, 12, P)
-            self._consts[f"dofs{g}"] = dofs.reshape(len(members), len(sig))
+            W = torch.stack([_run_coefficients(statics[r], runs[r]) for r in members])
+            dofs = torch.tensor([[dof for _, _, dof in runs[r]] for r in members], dtype=torch.long)
+            self.register_buffer(f"_fk_dofs{g}", dofs.reshape(len(members), len(sig)), persistent=False)
+            WA = None
             if sig:
-                pivots = not all(_pivot_is_origin(runs[order[r]]) for r in members)
-                A = torch.stack([_run_axes(statics[order[r]], runs[order[r]], pivots) for r in members])
-                self._consts[f"WA{g}"] = torch.cat([W, A], 1)  # (n, 12 + 3m or 12 + 6m, P)
-                par = [rank[parent[order[r]]] if parent[order[r]] >= 0 else len(order) for r in members]
-                self._consts[f"par{g}"] = torch.tensor(par, dtype=torch.long)
+                pivots = not all(_pivot_is_origin(runs[r]) for r in members)
+                A = torch.stack([_run_axes(statics[r], runs[r], pivots) for r in members])
+                WA = torch.cat([W, A], 1)
+                par = [node_parent[r] if node_parent[r] >= 0 else M for r in members]
+                self.register_buffer(f"_fk_par{g}", torch.tensor(par, dtype=torch.long), persistent=False)
                 self._axis_pivots.append(pivots)
                 for r, run_dofs in zip(members, dofs.tolist(), strict=True):
                     for dof in run_dofs:
@@ -393,52 +287,39 @@ class Skeleton(nn.Module):
                         n_pivot_rows += int(pivots)
             else:
                 self._axis_pivots.append(False)
+            self._coefficients.append((W, WA))
             self._groups.append(sig)
             concat.extend(members)
-        self._consts["axis_rows"] = torch.tensor(
-            [a if a >= 0 else n_axis_rows for a in axis_rows], dtype=torch.long
+        self.register_buffer(
+            "_fk_axis_rows",
+            torch.tensor([a if a >= 0 else n_axis_rows for a in axis_rows], dtype=torch.long),
+            persistent=False,
         )
-        self._consts["pivot_rows"] = torch.tensor(pivot_rows, dtype=torch.long)
-        revolute = [False] * D
-        for f in frames:
-            if f.dof >= 0:
-                revolute[f.dof] = f.joint_type == _REVOLUTE
-        self._dof_revolute = torch.tensor(revolute)
-        # Node structure in level order (the articulated-body solve of torchpf.ik reads it): each internal
-        # node's parent row (-1 for a root) and the DOFs of its run, root first.
-        self._node_parent = [rank[parent[n]] if parent[n] >= 0 else -1 for n in order]
-        self._node_dofs = [[dof for _, _, dof in runs[n]] for n in order]
+        self.register_buffer("_fk_pivot_rows", torch.tensor(pivot_rows, dtype=torch.long), persistent=False)
         kinds = {k for sig in self._groups for k in sig}
         self._has_revolute, self._has_prismatic = _REVOLUTE in kinds, _PRISMATIC in kinds
         # Rows of the group-concatenated tensor, in level order.
-        self._reorder = None if concat == sorted(concat) else torch.argsort(torch.tensor(concat))
+        reorder = None if concat == sorted(concat) else torch.argsort(torch.tensor(concat))
+        self.register_buffer("_fk_reorder", reorder, persistent=False)
+        self._body_rows_identity = bool(torch.equal(tree.joint_node, torch.arange(M)))
 
-        self._body_rows = torch.tensor([rank[node_of[i]] for i in body], dtype=torch.long)
-        self._body_rows_identity = bool(torch.equal(self._body_rows, torch.arange(len(order))))
-        self.parents: list[int] = []
-        self._bone_has_prismatic: list[bool] = []
-        # dof_joints[d]: the body joint whose run (the URDF joints between it and its parent joint) holds d
-        self.dof_joints: list[int] = [-1] * len(self.dof_names)
-        for b, i in enumerate(body):
+    def _build_capsules(self, frames, body, rest, geometry, radii: Mapping[str, float]) -> None:
+        body_set = set(body)
+        has_prismatic = []  # per body joint: a prismatic URDF joint between it and its parent joint
+        for i in body:
             j, kinds = i, set()
             while True:
                 kinds.add(frames[j].joint_type)
-                if frames[j].dof >= 0:
-                    self.dof_joints[frames[j].dof] = b
                 j = frames[j].parent
                 if j < 0 or j in body_set:
                     break
-            self.parents.append(body.index(j) if j >= 0 else -1)
-            self._bone_has_prismatic.append(_PRISMATIC in kinds)
-
-    def _build_capsules(self, geometry, radii: Mapping[str, float]) -> None:
-        rest = self.fk(torch.zeros(len(self.dof_names), dtype=torch.float64))
+            has_prismatic.append(_PRISMATIC in kinds)
         bones, r = [], []
         for c, p in enumerate(self.parents):
             if p < 0:
                 continue
             length = float((rest[c] - rest[p]).norm())
-            if length < 1e-9 and not self._bone_has_prismatic[c]:
+            if length < 1e-9 and not has_prismatic[c]:
                 continue
             child, parent = self.joint_names[c], self.joint_names[p]
             radius = radii.get(child)
@@ -462,28 +343,36 @@ class Skeleton(nn.Module):
             r.append(float(radius))
         self.bones: list[tuple[int, int]] = bones
         self.register_buffer("radii", torch.tensor(r, dtype=torch.float64), persistent=False)
-        self.register_buffer(
-            "_bone_index", torch.tensor(bones, dtype=torch.long).reshape(-1, 2), persistent=False
-        )
 
     # ------------------------------------------------------------------ kernel
     def _constants(self, dtype: torch.dtype, device: torch.device) -> dict:
-        key = (dtype, device)
-        consts = self._cache.get(key)
-        if consts is None:
-            consts = {
-                k: v.to(device=device, dtype=dtype if v.is_floating_point() else v.dtype)
-                for k, v in self._consts.items()
-            }
-            consts["levels"] = [(s, e, _as_slice_or(p, device)) for s, e, p in self._levels]
-            consts["reorder"] = None if self._reorder is None else self._reorder.to(device)
-            consts["body_rows"] = self._body_rows.to(device)
-            consts["eye34"] = torch.eye(3, 4, dtype=dtype, device=device)[None, :, :, None]
-            consts["col3"] = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=dtype, device=device).reshape(
-                1, 1, 4, 1
-            )
-            self._cache[key] = consts
-        return consts
+        """The kernel's constants in ``dtype`` on ``device``, built once (the tree's cache)."""
+        return self.tree.cached(("fk", device, dtype), lambda: self._build_constants(dtype, device))
+
+    def _build_constants(self, dtype: torch.dtype, device: torch.device) -> dict:
+        c: dict = {}
+        for g, (W, WA) in enumerate(self._coefficients):
+            c[f"W{g}"] = W.to(device=device, dtype=dtype)
+            c[f"dofs{g}"] = getattr(self, f"_fk_dofs{g}").to(device)
+            if WA is not None:
+                c[f"WA{g}"] = WA.to(device=device, dtype=dtype)
+                c[f"par{g}"] = getattr(self, f"_fk_par{g}").to(device)
+        c["axis_rows"] = self._fk_axis_rows.to(device)
+        c["pivot_rows"] = self._fk_pivot_rows.to(device)
+        c["reorder"] = None if self._fk_reorder is None else self._fk_reorder.to(device)
+        c["body_rows"] = self.tree.joint_node.to(device)
+        # each level's parents, as rows of the level above: a slice where they are contiguous
+        node_parent = self.tree.node_parent.cpu()
+        levels = []
+        prev = None
+        for start, end in self.tree.levels():
+            rows = None if prev is None else node_parent[start:end] - prev
+            levels.append((start, end, _as_slice_or(rows, device)))
+            prev = start
+        c["levels"] = levels
+        c["eye34"] = torch.eye(3, 4, dtype=dtype, device=device)[None, :, :, None]
+        c["col3"] = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=dtype, device=device).reshape(1, 1, 4, 1)
+        return c
 
     def _world(self, theta: torch.Tensor, axes: bool = False):
         """World 3x4 transforms (M, 3, 4, B) of every internal node, level order; ``theta`` is (B, D).
@@ -568,7 +457,7 @@ class Skeleton(nn.Module):
                 f"theta must have shape (..., {len(self.dof_names)}) in dof_names order, "
                 f"got {tuple(theta.shape)}"
             )
-        return theta.reshape(-1, theta.shape[-1]), theta.shape[:-1]
+        return flatten_batch(theta, 1)
 
     # ------------------------------------------------------------------ public API
     def fk(self, theta: torch.Tensor) -> torch.Tensor:
@@ -583,7 +472,7 @@ class Skeleton(nn.Module):
         """
         flat, batch = self._flat(theta)
         t = self._body(self._world(flat)[:, :, 3], flat)  # (J, 3, B)
-        return t.permute(2, 0, 1).reshape(*batch, len(self.joint_names), 3)
+        return unflatten_batch(t.permute(2, 0, 1), batch)
 
     def _body(self, nodes: torch.Tensor, flat: torch.Tensor) -> torch.Tensor:
         if self._body_rows_identity:
@@ -599,7 +488,7 @@ class Skeleton(nn.Module):
         flat, batch = self._flat(theta)
         T = self._body(self._world(flat), flat).permute(3, 0, 1, 2)  # (B, J, 3, 4)
         bottom = flat.new_tensor([0.0, 0.0, 0.0, 1.0]).expand(*T.shape[:2], 1, 4)
-        return torch.cat([T, bottom], -2).reshape(*batch, len(self.joint_names), 4, 4)
+        return unflatten_batch(torch.cat([T, bottom], -2), batch)
 
     def dof_axes(self, theta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """World axis and pivot of every DOF: the columns of the kinematic Jacobian.
@@ -616,14 +505,30 @@ class Skeleton(nn.Module):
         """
         flat, batch = self._flat(theta)
         _, axes, pivots = self._world(flat, axes=True)
-        D = len(self.dof_names)
-        return axes.permute(2, 0, 1).reshape(*batch, D, 3), pivots.permute(2, 0, 1).reshape(*batch, D, 3)
+        return unflatten_batch(axes.permute(2, 0, 1), batch), unflatten_batch(pivots.permute(2, 0, 1), batch)
+
+    def fk_with_axes(self, theta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Joint positions and DOF axes in one FK pass, *batch last*: what a solver linearises.
+
+        The layout of the IK solver and the tree Jacobian (:mod:`torchpf.kinematics.jacobian`), whose small
+        3-vector algebra runs over contiguous ``B``-long rows.
+
+        Args:
+            theta: (B, D) poses.
+
+        Returns:
+            ``axes`` (D, 3, B) and ``pivots`` (D, 3, B) as in :meth:`dof_axes`, and ``joints`` (J, 3, B) the
+            body-joint positions (m) of :meth:`fk`.
+        """
+        flat, _ = self._flat(theta)
+        world, axes, pivots = self._world(flat, axes=True)
+        return axes, pivots, self._body(world[:, :, 3], flat)
 
     @property
     def dof_revolute(self) -> torch.Tensor:
         """(D,) bool: True for a revolute DOF (radians), False for a prismatic one (metres), from the URDF
-        joint types (never from names)."""
-        return self._dof_revolute.clone()
+        joint types (never from names): ``tree.dof_revolute``."""
+        return self.tree.dof_revolute.clone()
 
     def clamp(self, theta: torch.Tensor) -> torch.Tensor:
         """``theta`` (..., D) clamped into ``[lower, upper]`` per DOF (differentiable inside the limits)."""
@@ -648,7 +553,7 @@ class Skeleton(nn.Module):
             radii: (C,) radii (m), dtype and device of ``theta``.
         """
         joints = self.fk(theta)
-        idx = self._bone_index.to(joints.device)
+        idx = self.tree.bones.to(joints.device)
         ends = joints[..., idx, :]  # (..., C, 2, 3)
         return ends, self.radii.to(device=joints.device, dtype=joints.dtype)
 

@@ -49,6 +49,7 @@ from torch import nn
 from torchpf.distributions import DYNAMICS, as_generator, make_dynamics
 from torchpf.filters.registry import FILTERS
 from torchpf.io import write_mocap_csv
+from torchpf.kinematics import body_partition
 from torchpf.likelihoods import LIKELIHOODS, make_likelihood
 
 
@@ -65,48 +66,6 @@ def _diffusion_std(dynamics) -> Any:
 
 def _spec_names(spec) -> list[str]:
     return [spec] if isinstance(spec, str) else list(spec)
-
-
-def body_partition(skeleton, *, per_limb: bool = False, joints: bool = False) -> list[list[int]]:
-    """Index groups for partitioned sampling (Fontmarty Table 2): the torso first, then the limbs.
-
-    The torso is the chain from the root towards the highest joint in the rest pose (pelvis, spine, neck,
-    head), with the root's DOFs; each subtree hanging off that chain (legs, arms) is a limb. Fontmarty §3.3.2
-    uses two partitions: the torso, then all the limbs together (``per_limb=False``); ``per_limb=True`` gives
-    one partition per limb.
-
-    Returns:
-        DOF indices per partition, or body-joint indices with ``joints=True``.
-    """
-    names, parents = skeleton.joint_names, skeleton.parents
-    rest = skeleton.fk(torch.zeros(len(skeleton.dof_names), dtype=torch.float64))
-    children: dict[int, list[int]] = {j: [] for j in range(len(names))}
-    for j, p in enumerate(parents):
-        if p >= 0:
-            children[p].append(j)
-
-    def subtree(j):
-        out = [j]
-        for c in children[j]:
-            out += subtree(c)
-        return out
-
-    torso, limbs = [], []
-    j = parents.index(-1)
-    while True:
-        torso.append(j)
-        if not children[j]:
-            break
-        # continue along the child whose subtree reaches highest (the head); the others are limbs
-        best = max(children[j], key=lambda c: float(rest[subtree(c), 2].max()))
-        limbs += [subtree(c) for c in children[j] if c != best]
-        j = best
-    joint_groups = [torso] + (limbs if per_limb else [[j for limb in limbs for j in limb]])
-    if joints:
-        return [g for g in joint_groups if g]
-    owner = skeleton.dof_joints
-    groups = [[d for d, j in enumerate(owner) if j in g] for g in joint_groups]
-    return [g for g in groups if g]
 
 
 @dataclass

@@ -22,7 +22,7 @@ joint (normally only the root has them).
 **Conversion to torchpf conventions** (z up, metres, radians). BVH is y up; the world frame is obtained with
 ``C`` = rotation about x by +90 degrees, ``(x, y, z)_bvh -> (x, -z, y)_world``. Conjugating every joint frame
 by ``C`` (and scaling translations by ``scale``, metres per file unit) turns the formula above into the URDF
-one of :class:`torchpf.urdf.BodyJoint`, term by term:
+one of :class:`torchpf.kinematics.urdf.BodyJoint`, term by term:
 
 * offsets become ``scale * C @ offset``;
 * a rotation about BVH axis ``e`` by ``a`` degrees becomes a revolute DOF about ``C @ e`` (X -> (1, 0, 0),
@@ -47,7 +47,7 @@ zero root OFFSET, so there the values are only scaled.
 
 **Limits.** BVH has none. Revolute DOFs get ``[-2 pi, 2 pi]`` (real Euler tracks may exceed +-180 degrees
 slightly, e.g. a wrist that wraps, and FK is periodic anyway), prismatic ones
-``+-torchpf.urdf.ROOT_TRANSLATION_LIMIT``. Values are never wrapped or clipped here.
+``+-torchpf.kinematics.urdf.ROOT_TRANSLATION_LIMIT``. Values are never wrapped or clipped here.
 
 **Capsules.** Each bone gets radius ``0.15 x`` its length clipped to ``[0.01, 0.08]`` m unless ``radii``
 (child joint name -> radius in m) says otherwise.
@@ -70,8 +70,8 @@ import numpy as np
 import torch
 
 from torchpf.io import MocapFormatError, parse_float_table, read_mocap_csv, write_mocap_csv
+from torchpf.kinematics.urdf import ROOT_TRANSLATION_LIMIT, BodyJoint, Dof, build_urdf
 from torchpf.skeleton import Skeleton
-from torchpf.urdf import ROOT_TRANSLATION_LIMIT, BodyJoint, Dof, build_urdf
 
 #: Metres per file unit of the CMU BVH conversions (``load_bvh(path, scale=CMU_SCALE)``).
 CMU_SCALE = 0.056444

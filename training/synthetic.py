@@ -32,7 +32,7 @@ import torch
 from torchpf import Skeleton
 from torchpf.assets import build
 from torchpf.io import write_text_atomic
-from torchpf.urdf import BodyJoint, build_urdf
+from torchpf.kinematics.urdf import BodyJoint, build_urdf
 from training.mocap import Motion, save_csv
 
 ACTIONS = ("walk", "wave", "bend")

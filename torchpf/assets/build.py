@@ -18,7 +18,7 @@ import math
 from pathlib import Path
 
 from torchpf.io import write_text_atomic
-from torchpf.urdf import ROOT_TRANSLATION_LIMIT, BodyJoint, Dof, build_urdf, floating_root_dofs
+from torchpf.kinematics.urdf import ROOT_TRANSLATION_LIMIT, BodyJoint, Dof, build_urdf, floating_root_dofs
 
 _BVH_AXIS = {"X": (1.0, 0.0, 0.0), "Y": (0.0, 0.0, 1.0), "Z": (0.0, -1.0, 0.0)}
 _ORDER = ("Z", "Y", "X")  # CMU channel order of every joint

@@ -1,12 +1,12 @@
-"""Fused CPU kernel for the articulated-body solve of :mod:`torchpf.ik` (numba; optional).
+"""Fused CPU kernel for the articulated-body solve of :mod:`torchpf.kinematics.aba` (numba; optional).
 
-The eager tensor version (:func:`torchpf.ik._aba_solve`) runs each small contraction of each tree level as
-its own tensor operation: on a CPU that is ~1,000 operations per solve, bound by their dispatch for small
-batches and by the memory traffic of their intermediates for large ones. This kernel runs the same
-recursion (Featherstone's ABA, world-frame spatial vectors) body by body, each step one loop over the
-batch with the small dimensions unrolled into registers, so that it vectorises over poses and keeps its
+The eager tensor version (:func:`torchpf.kinematics.aba.aba_solve`) runs each small contraction of each tree
+level as its own tensor operation: on a CPU that is ~1,000 operations per solve, bound by their dispatch for
+small batches and by the memory traffic of their intermediates for large ones. This kernel runs the same
+recursion (Featherstone's ABA, world-frame spatial vectors) body by body, each step one loop over the batch
+with the small dimensions unrolled into registers, so that it vectorises over poses and keeps its
 intermediates in cache. Same inputs and result as the eager version (checked by the tests); CPU only, no
-autograd: :func:`torchpf.ik._aba_solve` calls it when those hold and numba is installed.
+autograd: :func:`torchpf.kinematics.aba.aba_solve` calls it when those hold and numba is installed.
 """
 
 from __future__ import annotations
@@ -216,7 +216,7 @@ def aba_solve(
     on: Tensor,
     point_body: np.ndarray,
 ) -> Tensor:
-    """``δ (D, B)``: see :func:`torchpf.ik._aba_solve` (same system, CPU tensors, no autograd)."""
+    """``δ (D, B)``: see :func:`torchpf.kinematics.aba.aba_solve` (same system, CPU tensors, no autograd)."""
     D, _, B = tw.shape
     out = torch.zeros(D, B, dtype=tw.dtype)
 

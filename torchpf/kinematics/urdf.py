@@ -1,7 +1,14 @@
-"""Writing human-skeleton URDFs from a list of body joints.
+"""URDF in and out: reading a URDF into flattened frames, and writing human-skeleton URDFs.
 
-pytorch-kinematics (and URDF itself) has no ball or floating joint, so a body joint with several degrees of
-freedom becomes a run of single-DOF URDF joints linked by massless intermediate links::
+**Reading** (:func:`read_urdf_text`, :func:`build_chain`, :func:`flatten_chain`, :func:`link_geometry`): the
+text of a file or an XML string, the pytorch-kinematics chain built from it (parser complaints turned into
+warnings), that chain flattened depth-first into :class:`Frame` records (one per link, with the joint above
+it), and the capsule radii that ``<collision>``/``<visual>`` elements give. :class:`torchpf.skeleton.Skeleton`
+compiles these into its :class:`~torchpf.kinematics.tree.KinematicTree` and FK kernel.
+
+**Writing** (:func:`build_urdf`): pytorch-kinematics (and URDF itself) has no ball or floating joint, so a
+body joint with several degrees of freedom becomes a run of single-DOF URDF joints linked by massless
+intermediate links::
 
     parent --[first DOF, origin = bone offset]--> J__dof1 --[dof2, identity origin]--> ... --> J
 
@@ -10,7 +17,7 @@ and the last link of the run carries the body joint's name. A body joint with no
 (an End Site, a head top). A root body joint with DOFs hangs below a base link named ``world``.
 
 Capsule geometry is written as ``<collision name="CHILD">`` cylinders on the parent body link, one per bone,
-posed along the bone; ``torchpf.skeleton`` reads the radii back. A non-leaf body link whose bones all have
+posed along the bone; :func:`link_geometry` reads the radii back. A non-leaf body link whose bones all have
 zero length gets a small ``<collision>`` sphere, so that it is never mistaken for an intermediate link (see
 ``Skeleton.from_urdf`` for the rule).
 
@@ -19,14 +26,21 @@ Example::
     joints = [BodyJoint("pelvis", None, (0, 0, 0), floating_root_dofs("pelvis")),
               BodyJoint("knee", "pelvis", (0, 0, -0.45), [Dof("knee_rx", "revolute", (1, 0, 0), 0, 2.6)])]
     xml = build_urdf("toy", joints, radii={"knee": 0.07})
+    chain = build_chain(xml, "<urdf string>")
+    frames = flatten_chain(chain)                # depth-first, parents first
 """
 
 from __future__ import annotations
 
 import math
+import os
+import warnings
+import xml.etree.ElementTree as ET
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from xml.sax.saxutils import quoteattr
+
+import torch
 
 #: Default limit (m) of the prismatic root translations; URDF needs finite limits on prismatic joints.
 ROOT_TRANSLATION_LIMIT = 100.0
@@ -189,3 +203,129 @@ def _body_link(j: BodyJoint, kids: list[BodyJoint], radii: Mapping[str, float], 
     if not geoms:
         return [f"  <link name={quoteattr(j.name)}/>"]
     return [f"  <link name={quoteattr(j.name)}>", *geoms, "  </link>"]
+
+
+# ------------------------------------------------------------------------------------------------ reading
+
+
+@dataclass
+class Frame:
+    """One pytorch-kinematics frame (a link and the URDF joint above it), flattened.
+
+    Attributes:
+        name: the link name.
+        parent: index of the parent frame in the flattened list, -1 for the root.
+        static: (4, 4) float64 link offset @ joint offset (the joint's origin in the parent link frame).
+        joint_type: ``"fixed"``, ``"revolute"`` or ``"prismatic"`` (a URDF continuous joint is revolute).
+        axis: (3,) float64 joint axis in the joint frame.
+        dof: index into ``chain.get_joint_parameter_names()``, -1 for a fixed joint.
+        children: indices of the child frames.
+    """
+
+    name: str
+    parent: int
+    static: torch.Tensor
+    joint_type: str
+    axis: torch.Tensor
+    dof: int
+    children: list[int]
+
+
+def is_identity(static: torch.Tensor) -> bool:
+    """Whether a (4, 4) frame origin (:attr:`Frame.static`) is the identity, to 1e-12."""
+    return bool(torch.allclose(static, torch.eye(4, dtype=static.dtype), atol=1e-12, rtol=0))
+
+
+def read_urdf_text(path_or_xml: str | os.PathLike) -> tuple[str, str]:
+    """(xml text, where it came from) for a URDF path or an XML string (one that starts with ``<``)."""
+    if isinstance(path_or_xml, str) and path_or_xml.lstrip().startswith("<"):
+        return path_or_xml, "<urdf string>"
+    path = os.fspath(path_or_xml)
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"URDF file not found: {path}")
+    with open(path, encoding="utf-8") as f:
+        return f.read(), path
+
+
+def parse_urdf_xml(xml: str, source: str) -> ET.Element:
+    """The root element of the URDF text ``xml``; a ValueError naming ``source`` if it is not XML."""
+    try:
+        return ET.fromstring(xml)
+    except ET.ParseError as e:
+        raise ValueError(f"{source}: invalid URDF XML ({e})") from None
+
+
+def build_chain(xml: str, source: str):
+    """The pytorch-kinematics chain of the URDF text ``xml``; errors and warnings name ``source``.
+
+    The URDF parser prints its complaints to stderr; they become warnings here, except the one about the
+    optional ``name`` of ``<collision>``/``<visual>`` (URDF spec; used by :func:`link_geometry`).
+    """
+    import pytorch_kinematics as pk
+    from pytorch_kinematics.urdf_parser_py.xml_reflection import core as xml_core
+
+    complaints: list[str] = []
+    saved = xml_core.on_error
+    xml_core.on_error = complaints.append
+    try:
+        chain = pk.build_chain_from_urdf(xml.encode("utf-8"))
+    except Exception as e:  # the URDF parser raises many types on malformed input
+        raise ValueError(f"{source}: cannot build a kinematic chain ({type(e).__name__}: {e})") from e
+    finally:
+        xml_core.on_error = saved
+    for msg in complaints:
+        if not ('Unknown attribute "name"' in msg and ("/collision" in msg or "/visual" in msg)):
+            warnings.warn(f"{source}: {msg}", stacklevel=3)
+    return chain
+
+
+def link_geometry(root: ET.Element) -> dict[str, list[tuple[str | None, float | None]]]:
+    """link name -> [(element name, radius (m) or None)] for every <collision>/<visual> of the link."""
+    geoms: dict[str, list[tuple[str | None, float | None]]] = {}
+    for link in root.iter("link"):
+        entries = []
+        for el in [*link.findall("collision"), *link.findall("visual")]:
+            radius = None
+            geom = el.find("geometry")
+            if geom is not None:
+                for kind in ("capsule", "cylinder", "sphere"):
+                    g = geom.find(kind)
+                    if g is not None and g.get("radius") is not None:
+                        radius = float(g.get("radius"))
+                        break
+            entries.append((el.get("name"), radius))
+        geoms[link.get("name")] = entries
+    return geoms
+
+
+def flatten_chain(chain) -> list[Frame]:
+    """The frames of a pytorch-kinematics chain, depth-first from the root (parents before children)."""
+    dof_index = {n: i for i, n in enumerate(chain.get_joint_parameter_names())}
+    frames: list[Frame] = []
+
+    def matrix(t):
+        if t is None:
+            return torch.eye(4, dtype=torch.float64)
+        return t.get_matrix().reshape(4, 4).to(torch.float64)
+
+    def visit(frame, parent):
+        joint = frame.joint
+        jt = joint.joint_type
+        me = Frame(
+            name=frame.name.strip("\n"),
+            parent=parent,
+            static=matrix(frame.link.offset) @ matrix(joint.offset),
+            joint_type=jt,
+            axis=joint.axis.detach().to(torch.float64).reshape(3),
+            dof=dof_index[joint.name] if jt != "fixed" else -1,
+            children=[],
+        )
+        frames.append(me)
+        idx = len(frames) - 1
+        if parent >= 0:
+            frames[parent].children.append(idx)
+        for child in frame.children:
+            visit(child, idx)
+
+    visit(chain._root, -1)
+    return frames
