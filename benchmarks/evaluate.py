@@ -231,8 +231,8 @@ def treadmill(skeleton: Skeleton, angles: torch.Tensor) -> torch.Tensor:
     root = skeleton.parents.index(-1)
     t = torch.arange(len(angles), dtype=angles.dtype)
     t = t - t.mean()
-    for d, name in enumerate(skeleton.dof_names):
-        if "position" not in name:
+    for d in range(len(skeleton.dof_names)):
+        if skeleton.dof_revolute[d] or skeleton.dof_joints[d] != root:
             continue
         unit = torch.zeros(angles.shape[-1], dtype=torch.float64)
         unit[d] = 1.0

@@ -23,6 +23,7 @@ import torch
 
 from torchpf import Skeleton, metrics
 from torchpf.camera import camera_ring
+from torchpf.distributions import as_generator
 from torchpf.sequence import write_sequence
 from torchpf.synth import SynthOptions, synthesize
 from torchpf.tracker import Tracker
@@ -148,7 +149,7 @@ def main(argv: list[str] | None = None) -> int:
     model = fit_action_model(train, n_components=args.components, action="walk", skeleton=performer)
     model_path = out / "walk.npz"
     model.save(model_path)
-    gen = torch.Generator().manual_seed(args.seed)
+    gen = as_generator(args.seed)
     rates = {
         "training walks": float(torch.cat([model.accepts(m.angles, gen).double() for m in train]).mean()),
         "held-out walk": float(model.accepts(held_out.angles, gen).double().mean()),

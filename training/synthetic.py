@@ -31,6 +31,7 @@ import torch
 
 from torchpf import Skeleton
 from torchpf.assets import build
+from torchpf.distributions import as_generator
 from torchpf.io import write_text_atomic
 from torchpf.kinematics.urdf import BodyJoint, build_urdf
 from training.mocap import Motion, save_csv
@@ -233,7 +234,7 @@ def generate(
         raise ValueError(f"n_frames must be >= 1, got {n_frames}")
     if not fps > 0:
         raise ValueError(f"fps must be > 0, got {fps}")
-    gen = torch.Generator().manual_seed(int(seed))
+    gen = as_generator(int(seed))
     if style is None:
         style = sample_style(action, gen)
     joints, _ = build.human_joints()
@@ -334,7 +335,7 @@ def generate_dataset(
     paths = []
     for k in range(n_performers):
         perf_seed = seed * 1000 + k
-        style = sample_style(action, torch.Generator().manual_seed(perf_seed))
+        style = sample_style(action, as_generator(perf_seed))
         motion = generate(action, n_frames, fps, style=style, seed=perf_seed, name=f"{action}_{k:02d}")
         csv = out / f"{action}_{k:02d}.csv"
         save_csv(csv, motion)
