@@ -44,6 +44,10 @@ def _parser() -> argparse.ArgumentParser:
         action="append",
         help="likelihood term, repeatable; NAME or NAME=WEIGHT (default silhouette)",
     )
+    tr.add_argument(
+        "--temperature",
+        help="exponent on the log-likelihood: a number, or auto (set on the first frame for ESS/N = 0.2)",
+    )
     tr.add_argument("--init-spread", type=float, help="std of the initial particles (rad / m)")
     tr.add_argument("--device", help="cpu or cuda")
     tr.add_argument("--seed", type=int, default=0)
@@ -55,6 +59,19 @@ def _parser() -> argparse.ArgumentParser:
     ev.add_argument("--skeleton", required=True, help="URDF used for the joint positions")
     ev.add_argument("--threshold", type=float, default=0.25, help="T_failure (m), Fontmarty eq. 6")
     return ap
+
+
+def _temperature(value: str | None) -> float | str | None:
+    """``--temperature``: ``auto`` or a positive number."""
+    if value is None or value == "auto":
+        return value
+    try:
+        beta = float(value)
+    except ValueError:
+        raise CliError(f"--temperature must be a number or auto, got {value!r}") from None
+    if not (beta > 0 and beta < float("inf")):
+        raise CliError(f"--temperature must be positive and finite, got {value}")
+    return beta
 
 
 def _likelihood_spec(items):
@@ -106,6 +123,7 @@ def _track(args) -> int:
         ("filter", args.filter),
         ("n_particles", args.particles),
         ("likelihood", _likelihood_spec(args.likelihood)),
+        ("temperature", _temperature(args.temperature)),
         ("init_spread", args.init_spread),
         ("device", args.device),
     ):

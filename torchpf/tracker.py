@@ -50,7 +50,7 @@ from torchpf.distributions import DYNAMICS, as_generator, make_dynamics
 from torchpf.filters.registry import FILTERS
 from torchpf.io import write_mocap_csv
 from torchpf.kinematics import body_partition
-from torchpf.likelihoods import LIKELIHOODS, make_likelihood
+from torchpf.likelihoods import LIKELIHOODS, TemperedLikelihood, calibrate_temperature, make_likelihood
 
 
 def _diffusion_std(dynamics) -> Any:
@@ -126,6 +126,11 @@ class Tracker(nn.Module):
         cameras: a :class:`~torchpf.camera.CameraRig` / list of cameras (image likelihoods need them).
         likelihood: a module, a name, a list of names or ``{name: weight}`` (see :func:`make_likelihood`).
         likelihood_options: ``{name: {keyword: value}}`` for the named likelihoods.
+        temperature: exponent ``beta`` on the log-likelihood
+            (:class:`~torchpf.likelihoods.TemperedLikelihood`), or ``"auto"``: set per sequence on the first
+            frame so that one prediction step of the initial particles keeps ``ESS / N = 0.2``
+            (:func:`~torchpf.likelihoods.calibrate_temperature`), whatever the masks' resolution and noise
+            make the cue's sharpness. ``result.stats["temperature"]`` reports it.
         dynamics: a motion prior object or a registered name (see :func:`make_dynamics`).
         dynamics_options: keywords of the named prior's factory (e.g. ``{"scale": 0.5}``).
         proposal: optional importance distribution (``sample(state, obs, generator) -> (x, log_q)``).
@@ -147,6 +152,7 @@ class Tracker(nn.Module):
         *,
         likelihood: Any = "silhouette",
         likelihood_options: Mapping[str, Mapping] | None = None,
+        temperature: float | str = 1.0,
         dynamics: Any = "random_walk",
         dynamics_options: Mapping[str, Any] | None = None,
         proposal: Any = None,
@@ -173,6 +179,12 @@ class Tracker(nn.Module):
         self._likelihood_spec = likelihood
         self._likelihood_options = dict(likelihood_options or {})
         self.likelihood = make_likelihood(skeleton, cameras, likelihood, likelihood_options)
+        if temperature == "auto" or (not isinstance(temperature, str) and float(temperature) != 1.0):
+            beta = 1.0 if temperature == "auto" else float(temperature)
+            self.likelihood = TemperedLikelihood(self.likelihood, beta)
+        elif isinstance(temperature, str):
+            raise ValueError(f"temperature must be a number or 'auto', got {temperature!r}")
+        self.temperature = temperature
         if isinstance(dynamics, str):
             options = dict(dynamics_options or {})
             if fps is not None and "fps" not in options:
@@ -276,6 +288,14 @@ class Tracker(nn.Module):
         """Likelihood evaluations per frame of the assembled filter (at most ``n_particles``)."""
         return self.filter.likelihood_evaluations
 
+    def _calibrate_temperature(self, x0: torch.Tensor, obs, generator) -> None:
+        """Set the likelihood exponent from frame 0: the particles one prediction step after ``x0``."""
+        dynamics = self.filter.dynamics
+        with torch.no_grad():
+            predicted = dynamics.sample(x0, generator, extras=dynamics.init_extras(x0))
+            beta = calibrate_temperature(self.likelihood.likelihood, predicted, obs)
+        self.likelihood.beta = beta.to(self.likelihood.beta)
+
     # ------------------------------------------------------------------ running
     def initial_particles(self, pose: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
         """(N, D) initial particles: ``pose`` (D,) plus N(0, init_spread^2) noise, clamped to the limits.
@@ -344,8 +364,13 @@ class Tracker(nn.Module):
         x0 = self.initial_particles(init, generator)
         observations = [_to_device(f, self.device, self.dtype) for f in frames]
         t0 = time.perf_counter()
+        if self.temperature == "auto":
+            self._calibrate_temperature(x0, observations[0], generator)
         track = self.filter.run(observations, x0, generator=generator)  # no_grad inside, but for HMC moves
         seconds = time.perf_counter() - t0
+        stats = dict(track.stats)
+        if isinstance(self.likelihood, TemperedLikelihood):
+            stats["temperature"] = self.likelihood.beta.clone()
         return TrackResult(
             dof_names=list(self.skeleton.dof_names),
             fps=float(fps or self.fps or 30.0),
@@ -354,7 +379,7 @@ class Tracker(nn.Module):
             ess=track.ess.detach().cpu(),
             log_evidence=float(track.log_evidence),
             failed=track.failed.detach().cpu(),
-            stats={k: v.detach().cpu() if isinstance(v, torch.Tensor) else v for k, v in track.stats.items()},
+            stats={k: v.detach().cpu() if isinstance(v, torch.Tensor) else v for k, v in stats.items()},
             seconds=seconds,
             likelihood_evaluations=self.likelihood_evaluations,
         )

@@ -105,6 +105,30 @@ def test_errors_are_one_line(seq_dir, tmp_path, capsys):
         == 2
     )
     assert "weight must be a number" in capsys.readouterr().err
+    for bad_temperature in ("warm", "-1", "inf"):
+        track = ["track", str(seq_dir), "--skeleton", urdf, "--out", str(tmp_path / "t.csv")]
+        assert main([*track, "--temperature", bad_temperature]) == 2
+        assert "--temperature" in capsys.readouterr().err
+
+
+def test_track_with_auto_temperature(seq_dir, tmp_path, capsys):
+    out = tmp_path / "auto.csv"
+    urdf = str(path("human.urdf"))
+    args = [
+        "track",
+        str(seq_dir),
+        "--skeleton",
+        urdf,
+        "--out",
+        str(out),
+        "--filter",
+        "sir",
+        "--particles",
+        "60",
+    ]
+    assert main([*args, "--temperature", "auto", "--no-progress"]) == 0
+    names, values, _ = read_mocap_csv(out)
+    assert values.shape[0] == 8 and torch.isfinite(torch.as_tensor(values)).all()
 
 
 def test_module_entry_point_help():

@@ -170,3 +170,30 @@ def test_named_prior_gets_the_frame_rate(scene):
         skel, cams, dynamics="random_walk", fps=20.0, filter="sir", n_particles=10, progress=False
     )
     torch.testing.assert_close(torch.as_tensor(tracker.dynamics.sigma), table5_sigma(skel, fps=20.0))
+
+
+def test_auto_temperature_sets_the_first_frame_survival_rate(scene):
+    """temperature="auto": the exponent found on frame 0 gives the predicted particles ESS/N = 0.2 there."""
+    from torchpf.filters.weights import survival_fraction
+
+    skel, cams, seq, angles = scene
+    kwargs = dict(likelihood="silhouette", dynamics=walk(), filter="sir", n_particles=400, progress=False)
+    tracker = Tracker(skel, cams, temperature="auto", **kwargs)
+    result = tracker.track(seq, seed=0)
+    beta = result.stats["temperature"]
+    assert beta.shape == () and 1e-3 < float(beta) < 1e3 and torch.isfinite(result.angles).all()
+    # recompute: same seed -> same initial particles and the same first prediction step
+    from torchpf.distributions import as_generator
+
+    g = as_generator(0)
+    x0 = tracker.initial_particles(angles[0], g)
+    x1 = tracker.filter.dynamics.sample(x0, g)
+    frame = seq.frame(0)
+    energy = tracker.likelihood.likelihood(x1, frame).double()
+    torch.testing.assert_close(
+        survival_fraction(float(beta) * energy), torch.tensor(0.2, dtype=torch.float64), rtol=1e-3, atol=0
+    )
+    with pytest.raises(ValueError, match="temperature"):
+        Tracker(skel, cams, temperature="hot", **kwargs)
+    fixed = Tracker(skel, cams, temperature=0.5, **kwargs)
+    assert float(fixed.track(seq, seed=0).stats["temperature"]) == 0.5

@@ -62,7 +62,12 @@ from torchpf.likelihoods.images import (
 )
 from torchpf.likelihoods.keypoints import Keypoints2DLikelihood
 from torchpf.likelihoods.points import PointCloudLikelihood
-from torchpf.likelihoods.product import ProductLikelihood, make_likelihood
+from torchpf.likelihoods.product import (
+    ProductLikelihood,
+    TemperedLikelihood,
+    calibrate_temperature,
+    make_likelihood,
+)
 
 __all__ = [
     "LIKELIHOODS",
@@ -77,5 +82,7 @@ __all__ = [
     "ProductLikelihood",
     "SilhouetteLikelihood",
     "SkinBlobLikelihood",
+    "TemperedLikelihood",
+    "calibrate_temperature",
     "make_likelihood",
 ]

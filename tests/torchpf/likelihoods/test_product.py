@@ -100,3 +100,40 @@ def test_make_likelihood_by_name(skel, rig):
         make_likelihood(skel, rig, "nope")
     with pytest.raises(ValueError, match="needs cameras"):
         make_likelihood(skel, None, "chamfer")
+
+
+def test_tempered_likelihood_scales_and_keeps_impossible_poses():
+    import math
+
+    from torchpf.likelihoods import TemperedLikelihood
+
+    def base(x, obs):
+        return torch.where(x[..., 0] > 0, -x.square().sum(-1), torch.full_like(x[..., 0], -math.inf))  # noqa: E731
+
+    x = torch.tensor([[[1.0, 2.0], [-1.0, 0.0]]])
+    out = TemperedLikelihood(base, 0.5)(x, None)
+    assert out[0, 0] == -2.5 and out[0, 1] == -math.inf
+    assert TemperedLikelihood(base, 0.0)(x, None)[0, 1] == -math.inf  # 0 * -inf is not a probability
+
+
+def test_calibrated_temperature_matches_the_closed_form_survival_rate():
+    """Gaussian particles x ~ N(0, I_2) weighted by exp(-a |x|^2): ESS/N -> (1 + 4a) / (1 + 2a)^2, which is
+    0.2 at a = 2 + sqrt(5); the calibrated beta for log-likelihood -c |x|^2 is then (2 + sqrt(5)) / c."""
+    from torchpf.filters.weights import survival_fraction
+    from torchpf.likelihoods import calibrate_temperature
+
+    x = torch.randn(4, 200_000, 2, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    for c in (0.01, 1.0, 100.0):
+        lik = lambda theta, obs, c=c: -c * theta.square().sum(-1)  # noqa: E731
+        beta = calibrate_temperature(lik, x, None, survival_rate=0.2)
+        torch.testing.assert_close(
+            beta, torch.full((4,), (2 + 5**0.5) / c, dtype=torch.float64), rtol=0.05, atol=0
+        )
+        torch.testing.assert_close(
+            survival_fraction(-c * beta[:, None] * x.square().sum(-1)),
+            torch.full((4,), 0.2, dtype=torch.float64),
+            rtol=1e-3,
+            atol=0,
+        )
+    dead = lambda theta, obs: torch.full(theta.shape[:-1], float("-inf"))  # noqa: E731
+    assert torch.equal(calibrate_temperature(dead, x[:, :10], None), torch.ones(4, dtype=torch.float64))
