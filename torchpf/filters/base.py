@@ -252,7 +252,8 @@ class ParticleFilter(nn.Module):
         out = likelihood(x, obs)
         if out.shape != x.shape[:-1]:
             raise ValueError(f"likelihood returned shape {tuple(out.shape)}, expected {tuple(x.shape[:-1])}")
-        return out.to(x.dtype)
+        # a particle with a NaN/inf coordinate is impossible, whatever the likelihood made of it
+        return torch.where(torch.isfinite(x).all(-1), out.to(x.dtype), -math.inf)
 
     def _maybe_resample(
         self, state: ParticleState, generator: torch.Generator | None
@@ -332,6 +333,15 @@ class ParticleFilter(nn.Module):
         updated from them once, here); ``info`` adds filter-specific diagnostics.
         """
         inc = torch.where(failed, torch.zeros_like(increment), increment)
+        # A particle that left the reals (a NaN/inf from the dynamics, a move or a proposal) is dropped: it
+        # falls back to its frame-start parent with zero weight (uniform weights stay on a failed frame), so
+        # the estimates stay finite; info["nonfinite"] counts them.
+        bad = ~torch.isfinite(x).all(-1)
+        x = torch.where(bad.unsqueeze(-1), x_prev, x)
+        dropped = normalise(torch.where(bad & ~failed.unsqueeze(-1), -math.inf, log_w))
+        dropped = torch.where(torch.isfinite(dropped).any(-1, keepdim=True), dropped, -math.log(x.shape[-2]))
+        log_w = torch.where(bad.any(-1, keepdim=True), dropped, log_w)  # rows without one: untouched
+        info = {**info, "nonfinite": bad.sum(-1) + info.get("nonfinite", 0)}  # plus earlier stages' drops
         return ParticleState(
             particles=x,
             log_weights=log_w,

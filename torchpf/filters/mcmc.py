@@ -234,6 +234,7 @@ class MCMCParticleFilter(ParticleFilter):
             extras_prev,
             aux=aux,
             ess=weighted.ess(),
+            nonfinite=info["nonfinite"],
             acceptance=acceptance,
             step_size=step_used,
         )

@@ -80,13 +80,19 @@ class ParticleState:
         return weights.ess(self.log_weights)
 
     def mean(self) -> Tensor:
-        """MMSE estimate ``sum_i w_i x_i``: ``(..., D)`` (Brubaker eq. 16 with ``f(x) = x``)."""
-        return (self.weights().unsqueeze(-2) @ self.particles).squeeze(-2)
+        """MMSE estimate ``sum_i w_i x_i``: ``(..., D)`` (Brubaker eq. 16 with ``f(x) = x``); a particle of
+        weight 0 does not enter it, even when its coordinates are NaN/inf."""
+        w = self.weights()
+        return (w.unsqueeze(-2) @ self._weighted_only(w)).squeeze(-2)
+
+    def _weighted_only(self, w: Tensor) -> Tensor:
+        # 0 * NaN is NaN: zero-weight particles are zeroed before the weighted sums
+        return torch.where((w > 0).unsqueeze(-1), self.particles, torch.zeros_like(self.particles))
 
     def cov(self) -> Tensor:
         """Weighted covariance of the particles ``(..., D, D)``."""
         w = self.weights()
-        centred = self.particles - self.mean().unsqueeze(-2)
+        centred = self._weighted_only(w) - self.mean().unsqueeze(-2)
         return (centred * w.unsqueeze(-1)).transpose(-1, -2) @ centred
 
     def map(self) -> Tensor:

@@ -291,8 +291,9 @@ def test_device_and_dtype_follow_x0(kind, device, dtype, generator):
     track = pf.run(obs, x0, generator)
     for t in (track.estimates, track.ess, track.log_evidence, track.final_state.log_weights):
         assert t.dtype == dtype and t.device.type == device.type
-    for value in track.stats.values():
-        assert value.dtype == dtype and value.device.type == device.type
+    for value in track.stats.values():  # floating diagnostics in the particles' dtype, counts as integers
+        assert value.dtype == (dtype if value.is_floating_point() else torch.long)
+        assert value.device.type == device.type
     assert torch.all(torch.isfinite(track.estimates))
     again = pf.run(obs, x0, torch.Generator(device=device).manual_seed(0))
     assert torch.equal(track.estimates, again.estimates)
@@ -380,3 +381,37 @@ def test_progress_bar_can_be_shown(capsys):
     pf = make_filter("sir", progress=True)
     pf.run(observations(steps=2), _x0(), torch.Generator().manual_seed(0))
     assert "ParticleFilter" in capsys.readouterr().err
+
+
+class _SometimesNaN(GaussianRandomWalk):
+    """A random walk that sends a fixed share of its draws to NaN (or all of them)."""
+
+    def __init__(self, share):
+        super().__init__(STD)
+        self.share = share
+
+    def sample(self, x, generator=None, *, extras=None):
+        out = super().sample(x, generator, extras=extras)
+        n = out.shape[-2]
+        return out.index_fill(-2, torch.arange(int(self.share * n)), float("nan"))
+
+
+@pytest.mark.parametrize("kind", ["sir", "apf", "partitioned", "mcmc"])
+@pytest.mark.parametrize("share", [0.25, 1.0])
+def test_nonfinite_particles_are_dropped_and_counted(kind, share):
+    pf = make_filter(kind, dynamics=_SometimesNaN(share))
+    track = pf.run(observations(), _x0(), torch.Generator().manual_seed(0))
+    assert torch.isfinite(track.estimates).all() and torch.isfinite(track.final_state.particles).all()
+    if share == 1.0:  # nothing usable: every frame flagged, the parents kept
+        assert track.failed.all() and (track.stats["nonfinite"] == 64).all()
+    else:  # the NaN draws get no weight (the APF's and MCMC's own resampling removes them before the end)
+        assert not track.failed.any()
+        if kind in ("sir", "partitioned"):
+            assert (track.stats["nonfinite"] == 16).all()
+
+
+def test_mean_ignores_zero_weight_nan_particles():
+    x = torch.tensor([[1.0, 2.0], [float("nan"), 0.0], [3.0, 4.0]])
+    state = ParticleState(x, torch.tensor([0.0, -math.inf, 0.0]), torch.tensor(0.0))
+    torch.testing.assert_close(state.mean(), torch.tensor([2.0, 3.0]))
+    assert torch.isfinite(state.cov()).all()
