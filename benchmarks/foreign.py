@@ -448,25 +448,32 @@ def camera_params(cameras) -> list[CameraParams]:
 
 
 _SHIFT = 4  # fillConvexPoly fixed-point bits: vertices at 1/16 px
+SUPERSAMPLE = 4  # draw at 4x the resolution, then keep the pixels at least half covered
 
 
 def draw_solids(
-    solids: Sequence[tuple[str, np.ndarray]], camera: CameraParams, drop: set[str] = frozenset()
+    solids: Sequence[tuple[str, np.ndarray]],
+    camera: CameraParams,
+    drop: set[str] = frozenset(),
+    supersample: int = SUPERSAMPLE,
 ) -> np.ndarray:
     """(H, W) uint8 0/255 mask: the union of the solids' projected convex hulls (parts in ``drop`` left out).
 
-    Points behind the camera are left out of a hull (a solid wholly behind draws nothing).
+    ``cv2.fillConvexPoly`` fills every pixel an edge touches, which widens a 4-px limb by about a pixel; the
+    hulls are therefore drawn ``supersample`` times finer and a pixel is foreground when at least half of it
+    is covered. Points behind the camera are left out of a hull (a solid wholly behind draws nothing).
     """
-    mask = np.zeros((camera.height, camera.width), np.uint8)
+    s = max(1, int(supersample))
+    mask = np.zeros((camera.height * s, camera.width * s), np.uint8)
     kept = [p for part, p in solids if part not in drop]
     if not kept:
-        return mask
+        return np.zeros((camera.height, camera.width), np.uint8)
     sizes = [len(p) for p in kept]
     pts = np.concatenate(kept)
     depth = pts @ camera.R[2] + camera.t[2]
     rvec, _ = cv2.Rodrigues(camera.R)
     uv, _ = cv2.projectPoints(pts, rvec, camera.t, camera.K, camera.dist)
-    uv = uv.reshape(-1, 2)
+    uv = (uv.reshape(-1, 2) + 0.5) * s - 0.5  # the same pixel centres on the finer grid
     start = 0
     for n in sizes:
         sel = slice(start, start + n)
@@ -477,7 +484,9 @@ def draw_solids(
         fixed = np.round(uv[sel][front] * (1 << _SHIFT)).astype(np.int32)
         hull = cv2.convexHull(fixed)
         cv2.fillConvexPoly(mask, hull, 255, lineType=cv2.LINE_8, shift=_SHIFT)
-    return mask
+    if s > 1:
+        mask = cv2.resize(mask, (camera.width, camera.height), interpolation=cv2.INTER_AREA)
+    return np.where(mask >= 128, 255, 0).astype(np.uint8)
 
 
 # ================================================================================================ defects
@@ -647,7 +656,7 @@ def centre_root(skeleton, angles: torch.Tensor) -> torch.Tensor:
     target = -mean.clone()
     target[2] = 0.0
     # least-squares DOF offsets moving the root horizontally by -mean (height untouched)
-    coef = torch.linalg.lstsq(axes.T[:2], target[:2, None]).solution[:, 0]
+    coef = torch.linalg.pinv(axes.T[:2]) @ target[:2]  # (lstsq's default CPU driver fails here)
     out = angles.clone().to(torch.float64)
     out[:, trans] += coef
     return out
