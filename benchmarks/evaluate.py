@@ -813,6 +813,7 @@ class ForeignConfig:
     threshold: float = 0.25  # T_failure (m)
     cmu_dir: str = str(CMU_DIR)
     work_dir: str = ""  # where the sequence directories go (default: <out>/sequences)
+    in_place: bool = False  # remove the root's horizontal drift (treadmill), for diagnosis
     seed: int = 0
 
     def __post_init__(self):
@@ -911,6 +912,7 @@ def run_foreign(cfg: ForeignConfig, out: str | os.PathLike = "out/foreign", prog
                 frames=cfg.frames,
                 size=cfg.mask_size,
                 seed=cfg.seed,
+                in_place=cfg.in_place,
             )
             skel = Skeleton.from_urdf(str(seq.skeleton_path))  # what a user loads, not the builder's object
             truth_angles, _, _ = load_truth_csv(seq.path / "truth.csv")
@@ -992,7 +994,8 @@ def foreign_markdown(result: ForeignResult) -> str:
         f"rendered by benchmarks/foreign.py; {cfg.particles} likelihood evaluations per frame; "
         f"{cfg.runs} run(s); {'15 structural body' if cfg.joints == 'body' else 'all'} joints; "
         f"T_failure = {cfg.threshold} m. Failure: Fontmarty eq. 6 (joint-frames beyond T); frames failed: "
-        "frames with any joint beyond T.",
+        "frames with any joint beyond T. "
+        + ("Root drift removed (--in-place)." if cfg.in_place else "Performers walk through the volume."),
         "",
         "### Summary (mean over the clips)",
         "",
@@ -1094,6 +1097,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     f = ForeignConfig()
     p.add_argument("--clips", help="foreign: comma list of CMU clip stems (default: all in INDEX.tsv)")
+    p.add_argument(
+        "--in-place",
+        action="store_true",
+        help="foreign: remove the root's straight horizontal drift (the performer walks on a treadmill)",
+    )
     p.add_argument("--presets", help=f"foreign: comma list of mask presets (default: {','.join(f.presets)})")
     p.add_argument(
         "--setups", help=f"foreign: comma list of {list(FOREIGN_SETUPS)} (default: {','.join(f.setups)})"
@@ -1156,6 +1164,7 @@ def foreign_config_from_args(args: argparse.Namespace) -> ForeignConfig:
         joints=args.joints,
         threshold=args.threshold,
         cmu_dir=args.cmu_dir,
+        in_place=args.in_place,
         seed=args.seed,
     )
 

@@ -714,6 +714,7 @@ def build_sequence(
     performer_seed: int | None = None,
     seed: int = 0,
     scale: float = CMU_SCALE,
+    in_place: bool = False,
 ) -> ForeignSequence:
     """Render a BVH clip with the foreign body and write it as a sequence directory ``out_dir``.
 
@@ -721,7 +722,9 @@ def build_sequence(
     masks), its frame 0 (a rest pose in CMU files) dropped, resampled to ``fps`` and cut to ``frames``, its
     root centred horizontally (:func:`centre_root`), and seen by ``n_cameras`` cameras of ``size`` pixels
     (:func:`place_cameras`). ``performer_seed`` draws the body (default: from the clip's name, so each
-    performer gets a body of their own); ``seed`` drives the defects.
+    performer gets a body of their own); ``seed`` drives the defects. ``in_place`` removes the root's straight
+    horizontal drift instead (:func:`benchmarks.evaluate.treadmill`, for diagnosis: a walk at 1.5 m/s moves
+    the root 5 cm per frame at 30 fps, a run twice that).
     """
     from torchpf.camera import CameraRig
     from torchpf.io import write_text_atomic
@@ -737,6 +740,10 @@ def build_sequence(
     angles = resample(motion.angles[1:], motion.fps, fps, skel.dof_revolute)
     if frames is not None:
         angles = angles[:frames]
+    if in_place:
+        from benchmarks.evaluate import treadmill
+
+        angles = treadmill(skel, angles)
     angles = centre_root(skel, angles)
     if performer_seed is None:
         performer_seed = sum(ord(ch) for ch in clip.stem.split("_")[0])  # one body per CMU subject
@@ -764,6 +771,7 @@ def build_sequence(
         "defects": defects if isinstance(defects, str) else "custom",
         "defect_parameters": asdict(d),
         "seed": seed,
+        "in_place": in_place,
         "performer_seed": performer_seed,
         "stature": renderer.stature,
         "body": renderer.shape,
