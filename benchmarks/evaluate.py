@@ -51,6 +51,18 @@ How to run
     python -m benchmarks.evaluate --full    # the paper's grid: N 100..1500, R 10, all 6 filters (hours)
     python -m benchmarks.evaluate --sequences cmu:16_46,generator:wave --filters apf,partitioned_qrs
 
+Foreign renders (issue 11)
+--------------------------
+``--renderer foreign`` runs another protocol: every CMU clip rendered by :mod:`benchmarks.foreign` (a body
+the tracker's model has never seen; clean and noisy masks, 30 fps, 3 cameras, 160x120), written as a
+sequence directory and tracked by each named setup of :data:`FOREIGN_SETUPS` (``today``: the ``track``
+CLI's defaults at 500 evaluations per frame), printing MPJPE, RMSE, failure rates, ESS and time per clip and
+averaged, one row per setup ("before/after")::
+
+    python -m benchmarks.evaluate --renderer foreign                     # all 11 clips (a few minutes)
+    python -m benchmarks.evaluate --renderer foreign --clips 07_01 --presets clean --frames 20
+    python -m benchmarks.evaluate --renderer foreign --in-place --runs 3 --setups today
+
 Outputs in ``--out`` (default ``out/evaluate``): ``table.md`` (printed too), ``results.csv`` (one row per
 sequence x filter x N x run, then one ``aggregate`` row per sequence x filter x N), ``frames.csv`` (mean
 joint error per frame and run), ``config.json``, and plots ``fig8_<seq>.png`` / ``fig8_all.png`` (criteria
