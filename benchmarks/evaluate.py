@@ -51,6 +51,18 @@ How to run
     python -m benchmarks.evaluate --full    # the paper's grid: N 100..1500, R 10, all 6 filters (hours)
     python -m benchmarks.evaluate --sequences cmu:16_46,generator:wave --filters apf,partitioned_qrs
 
+Foreign renders (issue 11)
+--------------------------
+``--renderer foreign`` runs another protocol: every CMU clip rendered by :mod:`benchmarks.foreign` (a body
+the tracker's model has never seen; clean and noisy masks, 30 fps, 3 cameras, 160x120), written as a
+sequence directory and tracked by each named setup of :data:`FOREIGN_SETUPS` (``today``: the ``track``
+CLI's defaults at 500 evaluations per frame), printing MPJPE, RMSE, failure rates, ESS and time per clip and
+averaged, one row per setup ("before/after")::
+
+    python -m benchmarks.evaluate --renderer foreign                     # all 11 clips (a few minutes)
+    python -m benchmarks.evaluate --renderer foreign --clips 07_01 --presets clean --frames 20
+    python -m benchmarks.evaluate --renderer foreign --in-place --runs 3 --setups today
+
 Outputs in ``--out`` (default ``out/evaluate``): ``table.md`` (printed too), ``results.csv`` (one row per
 sequence x filter x N x run, then one ``aggregate`` row per sequence x filter x N), ``frames.csv`` (mean
 joint error per frame and run), ``config.json``, and plots ``fig8_<seq>.png`` / ``fig8_all.png`` (criteria
@@ -68,9 +80,10 @@ import math
 import os
 import sys
 import time
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -761,6 +774,281 @@ def write_outputs(result: BenchmarkResult, out: str | os.PathLike, plots: bool =
     return paths
 
 
+# ============================================================================================ foreign renders
+# Issue 11: every CMU clip rendered by benchmarks/foreign.py (a body the tracker's model has never seen),
+# written as a sequence directory and tracked as a user would, by each named "setup".
+
+
+def _sequence_fps(seq_dir: Path) -> float | None:
+    from torchpf.sequence import load_truth_csv
+
+    _, _, times = load_truth_csv(Path(seq_dir) / "truth.csv")
+    return None if times is None or len(times) < 2 else 1.0 / float(times[1] - times[0])
+
+
+def setup_today(seq_dir: Path, skeleton: Skeleton, *, n_particles: int = 500, **_) -> Tracker:
+    """Today's defaults: the tracker ``python -m torchpf track SEQ --skeleton S.urdf --particles N`` builds,
+    ``Tracker(skel, cameras, n_particles=N)`` with the sequence's frame rate (as the CLI passes it) and
+    nothing else (default likelihood, prior, filter; initial pose from ``truth.csv`` frame 0)."""
+    from torchpf.sequence import read_sequence
+
+    cameras = read_sequence(seq_dir).cameras
+    return Tracker(skeleton, cameras, n_particles=n_particles, fps=_sequence_fps(seq_dir), progress=False)
+
+
+#: Tracker configurations compared on the foreign renders, printed side by side ("before/after"). A setup
+#: is ``setup(seq_dir, skeleton, *, n_particles, seed) -> Tracker | TrackResult``: a Tracker is run on
+#: ``seq_dir`` (``tracker.track(seq_dir, seed=seed)``), a TrackResult is taken as the run (a setup that
+#: calibrates the body first, then tracks, returns one). Its wall time counts in ``total_seconds``.
+FOREIGN_SETUPS: dict[str, Callable[..., Any]] = {
+    "today": setup_today,
+    # ---- AFTER (issue 11): add the new configurations here, one entry each, e.g.
+    # "calibrated": fit the body (torchpf.calibrate.fit_body on the first frames, pose from truth.csv
+    #               frame 0), then track with the fitted skeleton;
+    # "new defaults": Tracker(skel, cameras, n_particles=n_particles) once the defaults have changed.
+}
+
+
+@dataclass
+class ForeignConfig:
+    """One run of the foreign-render evaluation (written to ``config.json``)."""
+
+    clips: tuple[str, ...] = ()  # CMU clip stems; empty: every clip in INDEX.tsv
+    presets: tuple[str, ...] = ("clean", "noisy")  # benchmarks.foreign.PRESETS
+    setups: tuple[str, ...] = ("today",)  # FOREIGN_SETUPS
+    frames: int = 60  # K per clip (the runs are shorter: ~34 frames at 30 fps)
+    fps: float = 30.0
+    particles: int = 500  # likelihood evaluations per frame
+    runs: int = 1  # seeds seed..seed+runs-1 per (clip, preset, setup)
+    mask_size: tuple[int, int] = (160, 120)
+    joints: str = "body"  # "body": BodyPlan.eval_joints (15, found structurally) or "all"
+    threshold: float = 0.25  # T_failure (m)
+    cmu_dir: str = str(CMU_DIR)
+    work_dir: str = ""  # where the sequence directories go (default: <out>/sequences)
+    in_place: bool = False  # remove the root's horizontal drift (treadmill), for diagnosis
+    seed: int = 0
+
+    def __post_init__(self):
+        from benchmarks.foreign import PRESETS
+
+        self.clips, self.presets, self.setups = tuple(self.clips), tuple(self.presets), tuple(self.setups)
+        self.mask_size = tuple(int(v) for v in self.mask_size)
+        for what, names, known in (
+            ("preset", self.presets, PRESETS),
+            ("setup", self.setups, FOREIGN_SETUPS),
+        ):
+            bad = [n for n in names if n not in known]
+            if bad or not names:
+                raise ValueError(f"unknown {what}(s) {bad}; choose from {list(known)}")
+        if self.frames < 2 or self.runs < 1 or self.particles < 1:
+            raise ValueError("need frames >= 2, runs >= 1 and particles >= 1")
+        if self.joints not in ("body", "all"):
+            raise ValueError(f"joints must be 'body' or 'all', got {self.joints!r}")
+
+
+@dataclass
+class ForeignResult:
+    """What :func:`run_foreign` returns: ``rows`` one dict per clip x preset x setup (criteria over the runs),
+    ``config``, ``seconds`` (whole run, rendering included)."""
+
+    config: ForeignConfig
+    rows: list[dict] = field(default_factory=list)
+    seconds: float = 0.0
+
+    def means(self) -> list[dict]:
+        """Per preset x setup: the criteria averaged over the clips (``clip == "mean"``)."""
+        keys = ("mpjpe", "rmse", "failure_rate", "frame_failure", "mean_ess", "seconds_per_frame")
+        out = []
+        for preset in self.config.presets:
+            for setup in self.config.setups:
+                sel = [r for r in self.rows if r["preset"] == preset and r["setup"] == setup]
+                if sel:
+                    mean = {k: float(np.mean([r[k] for r in sel])) for k in keys}
+                    frames = sum(r["frames"] for r in sel)
+                    seconds = sum(r["seconds_per_frame"] * r["frames"] for r in sel)
+                    out.append(
+                        {
+                            "clip": "mean",
+                            "action": "",
+                            "preset": preset,
+                            "setup": setup,
+                            **mean,
+                            "fps": frames / max(seconds, 1e-12),
+                            "frames": frames,
+                        }
+                    )
+        return out
+
+
+def foreign_clips(cfg: ForeignConfig) -> list[str]:
+    """The clip stems of ``cfg`` (all of INDEX.tsv, else every ``*.bvh``, when none are named)."""
+    cmu = Path(cfg.cmu_dir)
+    clips = list(cfg.clips) or list(_cmu_index(cmu)) or sorted(p.stem for p in cmu.glob("*.bvh"))
+    missing = [c for c in clips if not (cmu / f"{c}.bvh").is_file()]
+    if missing or not clips:
+        raise FileNotFoundError(f"no CMU clip(s) {missing or '*.bvh'} in {cmu}; pass --cmu-dir")
+    return clips
+
+
+def run_foreign(cfg: ForeignConfig, out: str | os.PathLike = "out/foreign", progress=False, log=None):
+    """Render every clip x preset with the foreign renderer, track it with every setup, and score it.
+
+    Criteria per clip (over ``runs``, :mod:`torchpf.metrics`, on the evaluated joints): ``mpjpe`` (m),
+    ``rmse`` (Fontmarty eq. 3), ``failure_rate`` (Fontmarty eq. 6: share of joint-frames further than
+    ``threshold`` from the truth), ``frame_failure`` (share of frames where any joint is: the issue's
+    "failure rate"), ``mean_ess``, ``seconds_per_frame`` (the filter loop, ``TrackResult.seconds / K``),
+    ``fps`` and ``total_seconds`` (setup + tracking wall time, reading the sequence included).
+    """
+    from benchmarks.foreign import body_plan, build_sequence
+    from torchpf.sequence import load_truth_csv
+    from torchpf.tracker import TrackResult
+
+    t_start = time.perf_counter()
+    result = ForeignResult(config=cfg)
+    work = Path(cfg.work_dir or Path(out) / "sequences")
+    clips = foreign_clips(cfg)
+    index = _cmu_index(Path(cfg.cmu_dir))
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        total = len(clips) * len(cfg.presets) * len(cfg.setups) * cfg.runs
+        bar = tqdm(total=total, desc="foreign tracking runs", unit="run", file=sys.stderr)
+    for clip in clips:
+        for preset in cfg.presets:
+            seq = build_sequence(
+                Path(cfg.cmu_dir) / f"{clip}.bvh",
+                work / f"{clip}-{preset}",
+                defects=preset,
+                fps=cfg.fps,
+                frames=cfg.frames,
+                size=cfg.mask_size,
+                seed=cfg.seed,
+                in_place=cfg.in_place,
+            )
+            skel = Skeleton.from_urdf(str(seq.skeleton_path))  # what a user loads, not the builder's object
+            truth_angles, _, _ = load_truth_csv(seq.path / "truth.csv")
+            joints = body_plan(skel).eval_joints() if cfg.joints == "body" else list(range(len(skel.parents)))
+            with torch.no_grad():
+                truth = skel.fk(truth_angles)[:, joints]
+            K = len(truth)
+            for name in cfg.setups:
+                estimates, seconds, totals, ess = [], [], [], []
+                for r in range(cfg.runs):
+                    t0 = time.perf_counter()
+                    made = FOREIGN_SETUPS[name](seq.path, skel, n_particles=cfg.particles, seed=cfg.seed + r)
+                    track = made if isinstance(made, TrackResult) else made.track(seq.path, seed=cfg.seed + r)
+                    totals.append(time.perf_counter() - t0)
+                    with torch.no_grad():
+                        estimates.append(skel.fk(track.angles)[:, joints])
+                    seconds.append(track.seconds / K)
+                    ess.append(float(track.ess.float().mean()))
+                    if bar is not None:
+                        bar.update()
+                est = torch.stack(estimates)  # (R, K, J, 3)
+                crit = metrics.evaluate(truth, est, cfg.threshold)
+                result.rows.append(
+                    {
+                        "clip": clip,
+                        "action": index.get(clip, "mocap"),
+                        "preset": preset,
+                        "setup": name,
+                        "frames": K,
+                        "joints": len(joints),
+                        "camera_radius": seq.info["camera_radius"],
+                        "mpjpe": crit["mpjpe"],
+                        "rmse": crit["rmse"],
+                        "failure_rate": crit["failure_rate"],
+                        "frame_failure": float(
+                            metrics.frame_failures(truth, est, cfg.threshold).float().mean()
+                        ),
+                        "mean_ess": float(np.mean(ess)),
+                        "seconds_per_frame": float(np.mean(seconds)),
+                        "fps": 1.0 / max(float(np.mean(seconds)), 1e-12),
+                        "total_seconds": float(np.mean(totals)),
+                    }
+                )
+                if log is not None:
+                    row = result.rows[-1]
+                    log(
+                        f"{clip} {preset} {name}: MPJPE {row['mpjpe'] * 1000:.0f} mm, "
+                        f"frames failed {row['frame_failure'] * 100:.0f} %"
+                    )
+    if bar is not None:
+        bar.close()
+    result.seconds = time.perf_counter() - t_start
+    return result
+
+
+def foreign_markdown(result: ForeignResult) -> str:
+    """Per-clip tables (one per preset) and the before/after summary over the clips."""
+    cfg = result.config
+    head = (
+        "| Clip | Action | Setup | MPJPE (mm) | RMSE (mm) | Failure (%) | Frames failed (%) | ESS "
+        "| Time/frame (s) | fps |"
+    )
+
+    def line(r, bold=False):
+        b = "**" if bold else ""
+        return (
+            f"| {b}{r['clip']}{b} | {r['action']} | {r['setup']} | {b}{r['mpjpe'] * 1000:.0f}{b} "
+            f"| {r['rmse'] * 1000:.0f} | {r['failure_rate'] * 100:.1f} "
+            f"| {b}{r['frame_failure'] * 100:.0f}{b} "
+            f"| {r['mean_ess']:.1f} | {r['seconds_per_frame']:.3f} | {r['fps']:.1f} |"
+        )
+
+    frames = sorted({r["frames"] for r in result.rows})
+    parts = [
+        "## Foreign renders (issue 11)",
+        "",
+        f"{len({r['clip'] for r in result.rows})} CMU clips, up to {cfg.frames} frames at {cfg.fps:g} fps "
+        f"(clips give {frames[0]}-{frames[-1]}), 3 cameras, {cfg.mask_size[0]}x{cfg.mask_size[1]} masks "
+        f"rendered by benchmarks/foreign.py; {cfg.particles} likelihood evaluations per frame; "
+        f"{cfg.runs} run(s); {'15 structural body' if cfg.joints == 'body' else 'all'} joints; "
+        f"T_failure = {cfg.threshold} m. Failure: Fontmarty eq. 6 (joint-frames beyond T); frames failed: "
+        "frames with any joint beyond T. "
+        + ("Root drift removed (--in-place)." if cfg.in_place else "Performers walk through the volume."),
+        "",
+        "### Summary (mean over the clips)",
+        "",
+        "| Setup | "
+        + " | ".join(f"{p} MPJPE (mm) | {p} frames failed (%)" for p in cfg.presets)
+        + " | fps |",
+        "|---|" + "---|---|" * len(cfg.presets) + "---|",
+    ]
+    means = result.means()
+    for setup in cfg.setups:
+        cells, fps = [], []
+        for preset in cfg.presets:
+            m = next(r for r in means if r["preset"] == preset and r["setup"] == setup)
+            cells.append(f"{m['mpjpe'] * 1000:.0f} | {m['frame_failure'] * 100:.0f}")
+            fps.append(m["fps"])
+        parts.append(f"| {setup} | " + " | ".join(cells) + f" | {np.mean(fps):.1f} |")
+    for preset in cfg.presets:
+        parts += ["", f"### {preset} masks", "", head, "|" + "---|" * 10]
+        parts += [line(r) for r in result.rows if r["preset"] == preset]
+        parts += [line(r, bold=True) for r in means if r["preset"] == preset]
+    parts += ["", f"Total time {result.seconds:.0f} s (rendering included)."]
+    return "\n".join(parts) + "\n"
+
+
+def write_foreign_outputs(result: ForeignResult, out: str | os.PathLike) -> dict[str, Path]:
+    """Write ``table.md``, ``results.csv`` (rows per clip, then the means) and ``config.json`` in ``out``."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = {"table": out / "table.md", "results": out / "results.csv", "config": out / "config.json"}
+    paths["table"].write_text(foreign_markdown(result), encoding="utf-8")
+    _write_csv(paths["results"], result.rows + result.means())
+    meta = {
+        **dataclasses.asdict(result.config),
+        "seconds": result.seconds,
+        "torch": torch.__version__,
+        "threads": torch.get_num_threads(),
+    }
+    paths["config"].write_text(json.dumps(meta, indent=2, default=str), encoding="utf-8")
+    return paths
+
+
 # ================================================================================================ CLI
 class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
     """Shows argparse defaults, except the None of the options whose help names their own default."""
@@ -792,7 +1080,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--frames", type=int, help=f"frames K per sequence (default: {d.frames})")
     p.add_argument("--mask-size", type=int, nargs=2, metavar=("W", "H"), help=f"(default: {d.mask_size})")
-    p.add_argument("--fps", type=float, default=d.fps, help="tracking frame rate (mocap is subsampled)")
+    p.add_argument(
+        "--fps", type=float, help=f"tracking frame rate (mocap is subsampled) (default: {d.fps}; foreign: 30)"
+    )
     p.add_argument("--morph-px", type=int, default=d.morph_px, help="segmentation noise: erosion/dilation px")
     p.add_argument("--speckle", type=float, default=d.speckle, help="segmentation noise: flipped pixel share")
     p.add_argument("--cues", default=",".join(d.cues), help="comma list of silhouette, dual_silhouette, skin")
@@ -809,7 +1099,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--joints", choices=["body", "all"], default=d.joints, help="joints the criteria use")
     p.add_argument("--cmu-dir", default=d.cmu_dir, help="folder of the CMU BVH clips")
     p.add_argument("--seed", type=int, default=d.seed)
-    p.add_argument("--out", default="out/evaluate", help="output folder")
+    p.add_argument("--out", help="output folder (default: out/evaluate; foreign: out/foreign)")
+    p.add_argument(
+        "--renderer",
+        choices=["synthetic", "foreign"],
+        default="synthetic",
+        help="synthetic: the Fontmarty protocol on torchpf.synth renders (the tracker's own body); foreign: "
+        "every CMU clip rendered by benchmarks/foreign.py, tracked by each --setups entry (issue 11)",
+    )
+    f = ForeignConfig()
+    p.add_argument("--clips", help="foreign: comma list of CMU clip stems (default: all in INDEX.tsv)")
+    p.add_argument(
+        "--in-place",
+        action="store_true",
+        help="foreign: remove the root's straight horizontal drift (the performer walks on a treadmill)",
+    )
+    p.add_argument("--presets", help=f"foreign: comma list of mask presets (default: {','.join(f.presets)})")
+    p.add_argument(
+        "--setups", help=f"foreign: comma list of {list(FOREIGN_SETUPS)} (default: {','.join(f.setups)})"
+    )
     p.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -821,6 +1129,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def config_from_args(args: argparse.Namespace) -> EvalConfig:
     """EvalConfig from the CLI; --quick/--full set the sizes that were not given explicitly."""
+    d = EvalConfig()
     preset = {**QUICK, "sequences": QUICK_SEQUENCES} if args.quick else FULL if args.full else {}
     kwargs = {}
     for key in ("sequences", "filters", "particles", "runs", "frames", "mask_size"):
@@ -832,7 +1141,7 @@ def config_from_args(args: argparse.Namespace) -> EvalConfig:
         elif key in preset:
             kwargs[key] = preset[key]
     kwargs.update(
-        fps=args.fps,
+        fps=d.fps if args.fps is None else args.fps,
         morph_px=args.morph_px,
         speckle=args.speckle,
         cues=tuple(s for s in args.cues.split(",") if s),
@@ -846,16 +1155,54 @@ def config_from_args(args: argparse.Namespace) -> EvalConfig:
     return EvalConfig(**kwargs)
 
 
+def foreign_config_from_args(args: argparse.Namespace) -> ForeignConfig:
+    """ForeignConfig from the CLI (``--renderer foreign``); options left out keep ForeignConfig's defaults."""
+    d = ForeignConfig()
+    if args.particles is not None and len(args.particles) != 1:
+        raise ValueError(f"--renderer foreign takes one --particles budget, got {args.particles}")
+
+    def names(text, default):
+        return default if text is None else tuple(s for s in text.split(",") if s)
+
+    return ForeignConfig(
+        clips=names(args.clips, d.clips),
+        presets=names(args.presets, d.presets),
+        setups=names(args.setups, d.setups),
+        frames=d.frames if args.frames is None else args.frames,
+        fps=d.fps if args.fps is None else args.fps,
+        particles=d.particles if args.particles is None else args.particles[0],
+        runs=d.runs if args.runs is None else args.runs,
+        mask_size=d.mask_size if args.mask_size is None else tuple(args.mask_size),
+        joints=args.joints,
+        threshold=args.threshold,
+        cmu_dir=args.cmu_dir,
+        in_place=args.in_place,
+        seed=args.seed,
+    )
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     torch.set_num_threads(max(1, args.threads))
+    if args.renderer == "foreign":
+        out = args.out or "out/foreign"
+        try:
+            fcfg = foreign_config_from_args(args)
+            log = None if args.no_progress else (lambda m: print(m, file=sys.stderr))
+            result = run_foreign(fcfg, out, progress=not args.no_progress, log=log)
+        except (ValueError, FileNotFoundError) as e:
+            parser.exit(2, f"error: {e}\n")
+        paths = write_foreign_outputs(result, out)
+        print(paths["table"].read_text(encoding="utf-8"))
+        print(f"wrote {', '.join(str(p) for p in paths.values())}", file=sys.stderr)
+        return 0
     try:
         cfg = config_from_args(args)
         result = run_benchmark(cfg, progress=not args.no_progress, log=lambda m: print(m, file=sys.stderr))
     except (ValueError, FileNotFoundError) as e:
         parser.exit(2, f"error: {e}\n")
-    paths = write_outputs(result, args.out, plots=not args.no_plots)
+    paths = write_outputs(result, args.out or "out/evaluate", plots=not args.no_plots)
     print(paths["table"].read_text(encoding="utf-8"))
     print(f"wrote {', '.join(str(p) for p in paths.values())}", file=sys.stderr)
     return 0

@@ -1,0 +1,180 @@
+"""The foreign renderer (benchmarks/foreign.py): body plan from structure, widths, closed-form areas, defects,
+sequences a user can track, and the --renderer foreign evaluation."""
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from benchmarks import foreign
+from torchpf import Skeleton
+from torchpf.assets import path as asset_path
+from torchpf.camera import camera_ring
+
+CMU = Path(__file__).resolve().parents[2].parent / "shared" / "mocap" / "cmu"
+needs_cmu = pytest.mark.skipif(not (CMU / "07_01.bvh").is_file(), reason="CMU clips not present")
+
+
+@pytest.fixture(scope="module")
+def cmu():
+    if not (CMU / "07_01.bvh").is_file():
+        pytest.skip("CMU clips not present")
+    from training.mocap import load_bvh
+
+    return load_bvh(CMU / "07_01.bvh", scale=foreign.CMU_SCALE)
+
+
+def _camera(f=500.0, width=640, height=480):
+    K = np.array([[f, 0.0, (width - 1) / 2], [0.0, f, (height - 1) / 2], [0.0, 0.0, 1.0]])
+    return foreign.CameraParams(K, np.eye(3), np.zeros(3), np.zeros(5), width, height)
+
+
+def test_body_plan_from_structure_not_names(cmu):
+    skel, _ = cmu
+    names = skel.joint_names
+    plan = foreign.body_plan(skel)
+    legs = {(names[limb.top], names[limb.mid], names[limb.end]) for limb in plan.legs}
+    arms = {(names[limb.top], names[limb.mid], names[limb.end]) for limb in plan.arms}
+    assert legs == {("LeftUpLeg", "LeftLeg", "LeftFoot"), ("RightUpLeg", "RightLeg", "RightFoot")}
+    assert arms == {("LeftArm", "LeftForeArm", "LeftHand"), ("RightArm", "RightForeArm", "RightHand")}
+    assert names[plan.torso[0]] == "Hips" and names[plan.torso[-1]] == "Head_end"
+    assert len(plan.eval_joints()) == 15
+    # fontmarty22: arms hang down in its rest pose and there are no hands or feet; still found
+    f22 = Skeleton.from_urdf(asset_path("fontmarty22.urdf"))
+    plan = foreign.body_plan(f22)
+    n = f22.joint_names
+    assert {n[limb.mid] for limb in plan.arms} == {"l_elbow", "r_elbow"}
+    assert {n[limb.mid] for limb in plan.legs} == {"l_knee", "r_knee"}
+    assert all(limb.tip == -1 for limb in (*plan.arms, *plan.legs))
+    assert plan.stature == pytest.approx(1.66, abs=0.01)
+
+
+def test_body_widths_scale_with_stature_and_vary_per_performer():
+    a, b = foreign.body_shape(1.5, seed=3), foreign.body_shape(1.8, seed=3)
+    for k in a:
+        assert b[k] == pytest.approx(a[k] * 1.8 / 1.5)
+    mean = foreign.body_shape(1.0, seed=None)
+    assert mean == pytest.approx(foreign.PROPORTIONS)
+    ratios = np.array([[foreign.body_shape(1.0, seed=s)[k] / mean[k] for k in mean] for s in range(40)])
+    assert ratios.min() >= 0.85 - 1e-12 and ratios.max() <= 1.15 + 1e-12
+    assert ratios.std(0).min() > 0.05  # every entry varies across performers (uniform +-15 %: std 8.7 %)
+    assert mean["upper_arm_radius"] == pytest.approx(0.028) and mean["thigh_radius"] == pytest.approx(0.053)
+
+
+def test_cylinder_and_ellipsoid_areas_match_closed_form():
+    cam = _camera()
+    f, z, r, L = 500.0, 3.0, 0.05, 0.6
+    # a cylinder seen side-on: a 2 r f / z by L f / z rectangle
+    cyl = foreign.frustum((-L / 2, 0.0, z), (L / 2, 0.0, z), r, r)
+    area = (foreign.draw_solids([("limb", cyl)], cam) > 0).sum()
+    assert area == pytest.approx(2 * r * L * f**2 / z**2, rel=0.1)
+    # an ellipsoid seen along its third axis (small, far from the image border): pi a b f^2 / z^2
+    ell = foreign.ellipsoid((0.0, 0.0, z), np.eye(3), (0.2, 0.1, 0.3))
+    area = (foreign.draw_solids([("head", ell)], cam) > 0).sum()
+    assert area == pytest.approx(math.pi * 0.2 * 0.1 * f**2 / z**2, rel=0.1)
+    # a part in `drop` is not drawn
+    assert (foreign.draw_solids([("arm0", cyl)], cam, drop={"arm0"}) == 0).all()
+
+
+def test_rest_pose_is_wider_than_the_trackers_capsules(cmu):
+    from torchpf.synth import render_silhouette
+
+    skel, _ = cmu
+    theta = torch.zeros(len(skel.dof_names), dtype=torch.float64)
+    rig = camera_ring(3, radius=4.0, target=(0.0, 0.0, 0.0), width=160, height_px=120)
+    renderer = foreign.ForeignRenderer(skel, performer_seed=None)
+    joints = renderer.joints(theta)
+    ours = renderer.render(joints, rig) > 0
+    waist = torch.as_tensor(joints[[renderer.plan.torso[0], renderer.plan.neck_base]])
+    for v in range(len(rig)):
+        theirs = render_silhouette(skel, theta, rig[v]).numpy()
+        # the capsules' mask lies mostly inside ours; ours is larger in every view (T-pose: the limbs are of
+        # similar width, 0.15 x bone length against ~0.05 x stature for a thigh)
+        assert (theirs & ~ours[v]).sum() <= 0.15 * theirs.sum()
+        assert ours[v].sum() > 1.15 * theirs.sum()
+        # the torso is wider: rows from the hips half way up to the neck base (in the side views the T-pose
+        # arms cross the upper rows); seen from the front (camera 0), several times wider
+        (u0, v0), (_, v1) = rig[v].project(waist).tolist()
+        rows = slice(round((v0 + v1) / 2), round(v0))
+        assert ours[v][rows].sum() > 1.5 * theirs[rows].sum()
+        if v == 0:
+            assert (ours[v][rows].sum(1) >= 3 * theirs[rows].sum(1)).all()
+
+
+def test_renderer_is_deterministic_per_seed_and_defects_change_a_stated_fraction(cmu):
+    skel, motion = cmu
+    angles = motion.angles[1:40:8]  # 5 frames
+    rig = camera_ring(3, radius=4.0, target=(0.0, 0.0, 0.9), width=160, height_px=120)
+    angles = foreign.centre_root(skel, angles)
+    renderer = foreign.ForeignRenderer(skel, performer_seed=1)
+    clean = renderer.render_sequence(angles, rig, defects="clean")
+    assert clean.shape == (5, 3, 120, 160) and clean.dtype == np.uint8
+    assert set(np.unique(clean)) == {0, 255}
+    a = renderer.render_sequence(angles, rig, defects="noisy", seed=4)
+    b = renderer.render_sequence(angles, rig, defects="noisy", seed=4)
+    c = renderer.render_sequence(angles, rig, defects="noisy", seed=5)
+    np.testing.assert_array_equal(a, b)
+    assert (a != c).any()
+    # another performer (seed) is another body
+    other = foreign.ForeignRenderer(skel, performer_seed=2).render_sequence(angles, rig)
+    assert (other != clean).any()
+    # speckle alone: each pixel redrawn with probability s as salt or pepper, so s / 2 of them change
+    speckle = renderer.render_sequence(angles, rig, defects=foreign.Defects(speckle=0.02), seed=0)
+    assert (speckle != clean).mean() == pytest.approx(0.01, rel=0.15)
+    # the noisy preset changes 1-4 % of all pixels (1.4-1.6 % on walks: speckle 0.5 %, the rest at the body)
+    assert 0.01 < (a != clean).mean() < 0.04
+
+
+def test_built_sequence_reads_back_and_tracks(tmp_path):
+    if not (CMU / "35_24.bvh").is_file():
+        pytest.skip("CMU clips not present")
+    from torchpf.sequence import read_sequence
+    from torchpf.tracker import Tracker
+
+    seq = foreign.build_sequence(CMU / "35_24.bvh", tmp_path / "seq", defects="noisy", frames=3)
+    assert (seq.path / "skeleton.urdf").is_file() and (seq.path / "render.json").is_file()
+    data = read_sequence(seq.path)
+    assert len(data) == 3 and len(data.cameras) == 3
+    assert data.masks[0][0].shape == (120, 160)
+    np.testing.assert_allclose(data.times[1] - data.times[0], 1 / 30)
+    skel = Skeleton.from_urdf(str(seq.skeleton_path))
+    assert list(data.dof_names) == list(skel.dof_names)
+    torch.testing.assert_close(data.truth, seq.angles)
+    # the root is centred: its mean horizontal position is the origin
+    root = skel.fk(data.truth)[:, skel.parents.index(-1)]
+    assert root[:, :2].mean(0).abs().max() < 1e-6
+    result = Tracker(skel, data.cameras, n_particles=30, progress=False).track(seq.path)
+    assert result.angles.shape == (3, len(skel.dof_names)) and torch.isfinite(result.angles).all()
+
+
+@needs_cmu
+def test_foreign_evaluation_smoke(tmp_path):
+    from benchmarks import evaluate as ev
+
+    args = ev.build_parser().parse_args(
+        [
+            "--renderer",
+            "foreign",
+            "--clips",
+            "16_46",
+            "--presets",
+            "clean",
+            "--frames",
+            "3",
+            "--particles",
+            "30",
+        ]
+    )
+    cfg = ev.foreign_config_from_args(args)
+    assert cfg.setups == ("today",) and cfg.fps == 30.0 and cfg.particles == 30
+    result = ev.run_foreign(cfg, tmp_path)
+    (row,) = result.rows
+    assert row["clip"] == "16_46" and row["frames"] == 3 and row["joints"] == 15
+    assert 0 <= row["frame_failure"] <= 1 and 0 < row["mpjpe"] < 1 and row["mean_ess"] >= 1
+    paths = ev.write_foreign_outputs(result, tmp_path / "out")
+    table = paths["table"].read_text()
+    assert "Foreign renders" in table and "| today |" in table and "**mean**" in table
+    with pytest.raises(ValueError, match="unknown setup"):
+        ev.ForeignConfig(setups=("tomorrow",))
