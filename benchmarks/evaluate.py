@@ -796,12 +796,37 @@ def setup_today(seq_dir: Path, skeleton: Skeleton, *, n_particles: int = 500, **
     return Tracker(skeleton, cameras, n_particles=n_particles, fps=_sequence_fps(seq_dir), progress=False)
 
 
+def tracker_setup(**options: Any) -> Callable[..., Tracker]:
+    """A setup that builds ``Tracker(skel, cameras, n_particles=N, fps=..., **options)`` (the CLI with
+    those options)."""
+
+    def setup(seq_dir: Path, skeleton: Skeleton, *, n_particles: int = 500, **_) -> Tracker:
+        from torchpf.sequence import read_sequence
+
+        cameras = read_sequence(seq_dir).cameras
+        return Tracker(
+            skeleton, cameras, n_particles=n_particles, fps=_sequence_fps(seq_dir), progress=False, **options
+        )
+
+    setup.__doc__ = f"Tracker options {options}"
+    return setup
+
+
+_BIDIR = {"likelihood": {"silhouette": 1.0, "dual_silhouette": 1.0}}
+
 #: Tracker configurations compared on the foreign renders, printed side by side ("before/after"). A setup
 #: is ``setup(seq_dir, skeleton, *, n_particles, seed) -> Tracker | TrackResult``: a Tracker is run on
 #: ``seq_dir`` (``tracker.track(seq_dir, seed=seed)``), a TrackResult is taken as the run (a setup that
 #: calibrates the body first, then tracks, returns one). Its wall time counts in ``total_seconds``.
 FOREIGN_SETUPS: dict[str, Callable[..., Any]] = {
     "today": setup_today,
+    # candidates for the new defaults: the bidirectional silhouette cue with each filter, fixed or
+    # first-frame-calibrated likelihood temperature
+    "bidir_apf": tracker_setup(**_BIDIR),
+    "bidir_apf_adaptive": tracker_setup(**_BIDIR, filter_options={"betas": "adaptive"}),
+    "bidir_partitioned": tracker_setup(**_BIDIR, filter="partitioned"),
+    "bidir_partitioned_auto": tracker_setup(**_BIDIR, filter="partitioned", temperature="auto"),
+    "bidir_sir": tracker_setup(**_BIDIR, filter="sir"),
     # ---- AFTER (issue 11): add the new configurations here, one entry each, e.g.
     # "calibrated": fit the body (torchpf.calibrate.fit_body on the first frames, pose from truth.csv
     #               frame 0), then track with the fitted skeleton;
