@@ -3,20 +3,22 @@
 A DOF's std is the angle (or, prismatic, the distance) that moves the farthest capsule point it drives by a
 set distance per frame, ``speed / fps``, with ``speed`` (m/s) one of :data:`SPEEDS` per body-part class
 found from the tree structure (:func:`dof_classes`): the root's translations and rotations, the torso chain
-and the limbs (:func:`torchpf.kinematics.body_partition`). A shoulder, a knee or a spine joint gets a
+and the limbs (:func:`torchpf.kinematics.body_partition`); short levers (hands, feet, head) are capped at
+an angular speed per class (:data:`ANGULAR_SPEEDS`). A shoulder, a knee or a spine joint gets a
 sensible std whatever it is called, and a DOF that moves no capsule (a zero-length leaf bone, fingers
 without geometry) gets 0: held still.
 
-* :func:`lever_arms` -- ``(D,)`` the largest distance (m) from each revolute DOF's axis to a capsule surface
+* :func:`lever_arms` -- ``(D,)`` the largest distance (m) from each revolute DOF's pivot to a capsule surface
   point it moves, at the rest pose (0 where it moves no capsule); prismatic DOFs: 1 where they move one.
 * :func:`structural_sigma` -- ``(D,)`` the std per frame at ``fps``: ``2 asin(s / 2L)`` rad (a rotation by
-  it moves a point at distance ``L`` from the axis by the chord ``s``, exactly), ``s`` m for prismatic DOFs.
+  it moves a point at distance ``L`` from the pivot by at most the chord ``s``), capped for short levers at
+  a measured angular speed (:data:`ANGULAR_SPEEDS`), ``s`` m for prismatic DOFs.
 * :func:`sigma_summary` -- the one-line summary of a std vector per body part that the factories log.
 * :func:`diffusion_sigma` -- the std vector a factory asks for by name: ``"structural"`` (default),
   ``"table5"`` (Fontmarty Table 5 by joint names, :mod:`priors.table5`, refined so that it never holds still a
   DOF that moves a capsule) or explicit values; it logs :func:`sigma_summary` and warns when it guesses.
-* :data:`SPEEDS` -- the default per-class speeds, measured on the CMU walks and runs
-  (``/work/shared/mocap/cmu``, 11 clips at 120 fps; see :data:`SPEEDS`).
+* :data:`SPEEDS`, :data:`ANGULAR_SPEEDS` -- the default per-class speeds, measured on the CMU walks and runs
+  (``/work/shared/mocap/cmu``, 11 clips at 120 fps).
 * :class:`LearnedDynamics` -- per-DOF step stds and the constant-velocity α (Rius eq. 3) learned from mocap
   (``python -m training fit-dynamics``), saved as a versioned ``.npz``; the ``learned`` factory
   (:func:`priors.factories.learned`) reads it.
@@ -63,6 +65,18 @@ SPEEDS: dict[str, float] = {
     "root_rotation": 0.8,
     "torso": 0.35,
     "limb": 1.3,
+}
+
+#: Most angular speed (rad/s) of a revolute DOF per class: a cap on :data:`SPEEDS`' angle for short levers.
+#: On the same clips and statistic (:func:`training.dynamics.class_speeds` with ``angular=True``: the 90th
+#: percentile over the class's moving DOFs of ``1.4826 · median |Δθ_d| · fps``, median over clips: 0.77 /
+#: 0.57 / 2.77 rad/s) segments turn at a bounded rate whatever their size: the tip of a hand, a foot or a
+#: head moves far slower than a hip swings the foot, so one distance per frame would give the 4 cm lever of
+#: a thumb 0.7 rad per frame at 30 fps (20x its measured step) where the cap gives 0.09.
+ANGULAR_SPEEDS: dict[str, float] = {
+    "root_rotation": 0.8,
+    "torso": 0.6,
+    "limb": 2.8,
 }
 
 _CLASSES = tuple(SPEEDS)
@@ -135,36 +149,47 @@ def lever_arms(skeleton, pose: torch.Tensor | None = None) -> torch.Tensor:
     return torch.where(revolute, lever, moves_capsule.to(torch.float64))
 
 
-def _speeds(speeds: Mapping[str, float] | None) -> dict[str, float]:
-    out = dict(SPEEDS)
-    for key, value in dict(speeds or {}).items():
-        if key not in SPEEDS:
-            raise ValueError(f"unknown speed class {key!r}; choose from {list(SPEEDS)}")
+def _table(
+    default: Mapping[str, float], overrides: Mapping[str, float] | None, what: str
+) -> dict[str, float]:
+    out = dict(default)
+    for key, value in dict(overrides or {}).items():
+        if key not in default:
+            raise ValueError(f"unknown {what} class {key!r}; choose from {list(default)}")
         if not (math.isfinite(value) and value >= 0):
-            raise ValueError(f"speed {key!r} must be finite and >= 0 (m/s), got {value}")
+            raise ValueError(f"{what} {key!r} must be finite and >= 0, got {value}")
         out[key] = float(value)
     return out
 
 
 def structural_sigma(
-    skeleton, fps: float, scale: float = 1.0, *, speeds: Mapping[str, float] | None = None
+    skeleton,
+    fps: float,
+    scale: float = 1.0,
+    *,
+    speeds: Mapping[str, float] | None = None,
+    angular_speeds: Mapping[str, float] | None = None,
 ) -> torch.Tensor:
     """``(D,)`` float64 per-DOF random-walk std per frame at ``fps`` (rad or m), from the structure.
 
     With ``s = scale · speed / fps`` (``speed`` of the DOF's class, :func:`dof_classes`, :data:`SPEEDS`
     overridden by ``speeds``) and ``L`` its lever arm (:func:`lever_arms`): a revolute DOF gets
-    ``2 asin(min(1, s / 2L))`` (a rotation by it moves the farthest capsule point by the chord ``s``; at
-    most π), a prismatic one ``s``; a DOF that moves no capsule gets 0.
+    ``2 asin(min(1, s / 2L))`` (a rotation by it moves the farthest capsule point by the chord ``s``), at
+    most ``scale · ω / fps`` with ``ω`` its class's :data:`ANGULAR_SPEEDS` (overridden by
+    ``angular_speeds``); a prismatic one ``s``; a DOF that moves no capsule 0.
     """
     if not (math.isfinite(fps) and fps > 0):
         raise ValueError(f"fps must be > 0, got {fps}")
     if not (math.isfinite(scale) and scale >= 0):
         raise ValueError(f"scale must be finite and >= 0, got {scale}")
-    table = _speeds(speeds)
-    step = torch.tensor([table[c] for c in dof_classes(skeleton)], dtype=torch.float64) * (scale / fps)
+    classes = dof_classes(skeleton)
+    table = _table(SPEEDS, speeds, "speed")
+    turn = _table(ANGULAR_SPEEDS, angular_speeds, "angular speed")
+    step = torch.tensor([table[c] for c in classes], dtype=torch.float64) * (scale / fps)
+    cap = torch.tensor([turn.get(c, math.inf) for c in classes], dtype=torch.float64) * (scale / fps)
     lever = lever_arms(skeleton)
     angle = 2.0 * torch.asin((step / (2.0 * lever.clamp_min(1e-12))).clamp(max=1.0))
-    sigma = torch.where(skeleton.tree.dof_revolute.cpu(), angle, step)
+    sigma = torch.where(skeleton.tree.dof_revolute.cpu(), torch.minimum(angle, cap), step)
     return torch.where(lever > 0, sigma, torch.zeros_like(sigma))
 
 

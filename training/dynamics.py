@@ -17,8 +17,9 @@ as a :class:`priors.diffusion.LearnedDynamics` (saved as a versioned ``.npz``):
    performances (:func:`training.fit.fit_alpha`, the action-model fitter's rule), and ``cv_std`` is the
    robust std of those prediction errors at α.
 
-:func:`class_speeds` measures, per body-part class, the speed of the farthest capsule point a DOF drives:
-how :data:`priors.diffusion.SPEEDS` was set.
+:func:`class_speeds` measures, per body-part class, the speed of the farthest capsule point a DOF drives
+and the angular speed of its revolute DOFs: how :data:`priors.diffusion.SPEEDS` and
+:data:`priors.diffusion.ANGULAR_SPEEDS` were set.
 
 Example::
 
@@ -112,20 +113,22 @@ def fit_dynamics(
 
 
 def class_speeds(
-    performances: Sequence[tuple], *, quantile: float = 0.9, skip_first: int = 1
+    performances: Sequence[tuple], *, quantile: float = 0.9, skip_first: int = 1, angular: bool = False
 ) -> dict[str, float]:
     """Speed (m/s) of the farthest capsule point each class of DOF drives (how
-    :data:`priors.diffusion.SPEEDS` was set).
+    :data:`priors.diffusion.SPEEDS` was set), or with ``angular=True`` the angular speed (rad/s) of the
+    class's revolute DOFs (:data:`priors.diffusion.ANGULAR_SPEEDS`).
 
-    Per performance, per DOF: the robust step ``1.4826 · median |δ_d|`` (:func:`robust_std`) as the chord
-    it moves the farthest capsule point at the rest-pose lever arm (:func:`priors.diffusion.lever_arms`),
-    times the fps; per class (:func:`priors.diffusion.dof_classes`) the ``quantile`` over its moving DOFs;
-    then the median over performances.
+    Per performance, per DOF: the robust step ``1.4826 · median |δ_d|`` (:func:`robust_std`) times the fps,
+    as an angle or as the chord it moves the farthest capsule point at the rest-pose lever arm
+    (:func:`priors.diffusion.lever_arms`); per class (:func:`priors.diffusion.dof_classes`) the ``quantile``
+    over its moving DOFs; then the median over performances.
 
     Args:
         performances: ``(skeleton, motion)`` pairs, e.g. from :func:`training.mocap.load_bvh`.
         quantile: in [0, 1].
         skip_first: frames dropped at the start of each motion (CMU conversions: 1, a rest pose).
+        angular: measure rad/s of the revolute DOFs instead of m/s.
     """
     per_clip: dict[str, list[float]] = {}
     for skel, motion in performances:
@@ -134,10 +137,11 @@ def class_speeds(
         track = _tracks([m[skip_first:]], revolute, m.fps)[0]
         step = robust_std(np.diff(track, axis=0))
         lever = lever_arms(skel).numpy()
-        speed = np.where(revolute, 2.0 * lever * np.sin(step / 2.0), step) * m.fps
+        chord = np.where(revolute, 2.0 * lever * np.sin(step / 2.0), step)
+        speed = (step if angular else chord) * m.fps
         classes = np.array(dof_classes(skel))
         for c in set(classes.tolist()):
-            moving = (classes == c) & (lever > 0) & (speed > 1e-4)
+            moving = (classes == c) & (lever > 0) & (speed > 1e-4) & (revolute if angular else True)
             if moving.any():
                 per_clip.setdefault(c, []).append(float(np.quantile(speed[moving], quantile)))
     return {c: float(np.median(v)) for c, v in sorted(per_clip.items())}

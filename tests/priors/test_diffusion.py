@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from priors.diffusion import (
+    ANGULAR_SPEEDS,
     SPEEDS,
     diffusion_sigma,
     dof_classes,
@@ -116,17 +117,27 @@ def test_dofs_without_geometry_are_held_still(handless, human, f22):
 def test_the_std_moves_the_farthest_capsule_point_by_the_set_distance(human, f22):
     for skel in (human, f22):
         sigma, classes = structural_sigma(skel, FPS), dof_classes(skel)
+        cap = torch.tensor([ANGULAR_SPEEDS.get(c, math.inf) / FPS for c in classes], dtype=torch.float64)
+        capped = sigma == cap  # short levers: held to the class's angular speed
         ratio = torch.zeros(len(sigma), dtype=torch.float64)
         for d in range(len(sigma)):
             if sigma[d] > 0:
                 ratio[d] = _max_capsule_displacement(skel, d, float(sigma[d])) / (SPEEDS[classes[d]] / FPS)
         # no capsule point moves farther than the set distance; the lever is the distance to the pivot, so
         # the DOF of each joint whose axis lies square to its farthest point moves that point by it exactly
-        assert float(ratio.max()) <= 1 + 1e-6
+        assert float(ratio.max()) <= 1 + 1e-6 and (sigma <= cap).all()
         for j in set(skel.dof_joints):
-            mine = [d for d, k in enumerate(skel.dof_joints) if k == j and sigma[d] > 0]
+            mine = [d for d, k in enumerate(skel.dof_joints) if k == j and sigma[d] > 0 and not capped[d]]
             if mine:
                 assert float(ratio[mine].max()) == pytest.approx(1.0, rel=0.01), skel.joint_names[j]
+    # the cap bites on the short levers only: hands, feet, thumbs and the neck, not hips, knees, shoulders
+    sigma = dict(zip(human.dof_names, structural_sigma(human, FPS).tolist(), strict=True))
+    assert (
+        sigma["LThumb_Xrotation"]
+        == sigma["LeftHand_Zrotation"]
+        == pytest.approx(ANGULAR_SPEEDS["limb"] / FPS)
+    )
+    assert max(sigma[f"Left{j}_Xrotation"] for j in ("UpLeg", "Leg", "Arm")) < ANGULAR_SPEEDS["limb"] / FPS
 
 
 def test_structure_decides_classes_and_fps_scales_like_a_speed(human, f22):
@@ -140,7 +151,9 @@ def test_structure_decides_classes_and_fps_scales_like_a_speed(human, f22):
     torch.testing.assert_close(
         structural_sigma(human, 120.0), structural_sigma(human, 60.0) / 2, rtol=0.01, atol=0
     )
-    fast = structural_sigma(f22, FPS, speeds={"limb": 2 * SPEEDS["limb"]})
+    fast = structural_sigma(
+        f22, FPS, speeds={"limb": 2 * SPEEDS["limb"]}, angular_speeds={"limb": 2 * ANGULAR_SPEEDS["limb"]}
+    )
     slow = structural_sigma(f22, FPS)
     limb = torch.tensor([c == "limb" for c in dof_classes(f22)])
     assert (fast[limb] > 1.9 * slow[limb]).all() and torch.equal(fast[~limb], slow[~limb])
