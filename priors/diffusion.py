@@ -206,9 +206,8 @@ def part_names(skeleton) -> list[tuple[str, list[int]]]:
         ("torso", [d for d in torso if not classes[d].startswith("root")]),
     ]
     z = skeleton.fk(rest_pose(skeleton))[:, 2].cpu()
-    roots = (skeleton.tree.parents < 0).nonzero()
-    root_z = float(z[roots[0, 0]]) if len(roots) else 0.0
     part, parents = skeleton.tree.joint_part.tolist(), skeleton.tree.parents.tolist()
+    root_z = float(z[parents.index(-1)]) if -1 in parents else 0.0
     counts = {"leg": 0, "arm": 0}
     for k, g in enumerate(groups[1:], start=1):
         top = next(j for j, p in enumerate(part) if p == k and parents[j] >= 0 and part[parents[j]] == 0)
