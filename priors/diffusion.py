@@ -54,29 +54,32 @@ _log = logging.getLogger("priors")
 #: Default speed (m/s) of the farthest capsule point each class of DOF drives. Measured
 #: (:func:`training.dynamics.class_speeds`) on the 11 CMU walk and run clips of ``/work/shared/mocap/cmu``
 #: (120 fps, rest frame dropped): per DOF the robust step ``1.4826 · median |Δθ_d|`` as the chord it moves
-#: its farthest capsule point at the rest-pose lever (:func:`lever_arms`), times the fps; per clip the 90th
-#: percentile over the class's moving DOFs (the class median, 0.19 / 0.73 / 0.17 / 0.22 m/s, is set by
-#: small distal joints and would under-spread hips, knees and shoulders 5-10x); the median over clips
-#: (1.93 / 0.78 / 0.33 / 1.29 m/s), rounded. Per-frame steps of real motion are velocity-dominated (on the
-#: same clips the step std at 30 fps is 3.3x the one at 120 fps, 2.5x from 30 to 10 fps: close to the
-#: ``1 / fps`` of a speed, far from the ``sqrt(1 / fps)`` of a random walk), so the std scales as ``1 / fps``.
+#: its farthest capsule point at the rest-pose lever (:func:`lever_arms`), times the fps; per clip the upper
+#: quartile over the class's moving DOFs; the median over clips (1.28 / 0.76 / 0.27 / 0.50 m/s), rounded.
+#: The class median (0.19 / 0.73 / 0.17 / 0.22 m/s) is set by small distal joints and under-spreads hips,
+#: knees and shoulders; the 90th percentile (1.93 / 0.78 / 0.33 / 1.29 m/s) over-spreads a budget of a few
+#: hundred particles: on notebook 03's walk (human.urdf, 15 fps, 450 evaluations, 2 runs) it gave APF / SIR
+#: / partitioned RMSE 0.29 / 0.16 / 0.18 m against 0.19 / 0.11 / 0.13 m with the upper quartile (Table 5 by
+#: names: 0.22 / 0.12 / 0.11 m). Per-frame steps of real motion are velocity-dominated (on the same clips
+#: the step std at 30 fps is 3.3x the one at 120 fps, 2.5x from 30 to 10 fps: close to the ``1 / fps`` of a
+#: speed, far from the ``sqrt(1 / fps)`` of a random walk), so the std scales as ``1 / fps``.
 SPEEDS: dict[str, float] = {
-    "root_translation": 1.9,
-    "root_rotation": 0.8,
-    "torso": 0.35,
-    "limb": 1.3,
+    "root_translation": 1.3,
+    "root_rotation": 0.75,
+    "torso": 0.27,
+    "limb": 0.5,
 }
 
 #: Most angular speed (rad/s) of a revolute DOF per class: a cap on :data:`SPEEDS`' angle for short levers.
-#: On the same clips and statistic (:func:`training.dynamics.class_speeds` with ``angular=True``: the 90th
-#: percentile over the class's moving DOFs of ``1.4826 · median |Δθ_d| · fps``, median over clips: 0.77 /
-#: 0.57 / 2.77 rad/s) segments turn at a bounded rate whatever their size: the tip of a hand, a foot or a
-#: head moves far slower than a hip swings the foot, so one distance per frame would give the 4 cm lever of
-#: a thumb 0.7 rad per frame at 30 fps (20x its measured step) where the cap gives 0.09.
+#: Same clips and statistic (:func:`training.dynamics.class_speeds` with ``angular=True``: the upper
+#: quartile over the class's moving DOFs of ``1.4826 · median |Δθ_d| · fps``, median over clips: 0.76 /
+#: 0.48 / 1.80 rad/s). Segments turn at a bounded rate whatever their size: the tip of a hand, a foot or a
+#: head moves far slower than a hip swings the foot, so one distance per frame alone would give the 4 cm
+#: lever of a thumb 0.43 rad per frame at 30 fps (40x its measured step) where the cap gives 0.06.
 ANGULAR_SPEEDS: dict[str, float] = {
-    "root_rotation": 0.8,
-    "torso": 0.6,
-    "limb": 2.8,
+    "root_rotation": 0.75,
+    "torso": 0.48,
+    "limb": 1.8,
 }
 
 _CLASSES = tuple(SPEEDS)

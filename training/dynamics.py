@@ -113,7 +113,7 @@ def fit_dynamics(
 
 
 def class_speeds(
-    performances: Sequence[tuple], *, quantile: float = 0.9, skip_first: int = 1, angular: bool = False
+    performances: Sequence[tuple], *, quantile: float = 0.75, skip_first: int = 1, angular: bool = False
 ) -> dict[str, float]:
     """Speed (m/s) of the farthest capsule point each class of DOF drives (how
     :data:`priors.diffusion.SPEEDS` was set), or with ``angular=True`` the angular speed (rad/s) of the
