@@ -3,6 +3,8 @@
 * :mod:`priors.motion`: ``AngularRandomWalk`` (Hauberg eq. 3) within the joint limits, ``ConstantVelocity``
   (Rius eq. 3),
   ``DampedSecondOrder`` (Brubaker eq. 13), ``ProjectedGaussian`` (Hauberg eq. 6-7).
+* :mod:`priors.diffusion`: the default per-DOF stds from the kinematic structure (no names), and
+  ``LearnedDynamics`` (step stds and α learned from mocap).
 * :mod:`priors.table5`: Fontmarty Table 5, the random-walk stds per joint group, mapped onto a skeleton.
 * :mod:`priors.proposals`: data-driven importance distributions ``SilhouetteGuided`` (Hauberg eq. 12),
   ``DepthGuided`` (Hauberg eq. 13-14) and the ``AngularRejection`` baseline (Hauberg eq. 4).

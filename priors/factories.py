@@ -3,42 +3,68 @@
 torchpf never imports this package; it finds these factories through the ``torchpf.dynamics`` entry-point
 group declared in ``pyproject.toml``. Each factory is ``factory(skeleton, **options) -> dynamics``.
 
-* ``random_walk``: angular random walk (Hauberg eq. 3, Fontmarty §3.1) with the per-joint-group stds of
-  Fontmarty Table 5 (:func:`priors.table5.table5_sigma`), restricted to the joint limits.
-* ``constant_velocity``: Rius eq. 3 (:class:`priors.motion.ConstantVelocity`), diffusion from Table 5.
-* ``damped``: Brubaker eq. 13 (:class:`priors.motion.DampedSecondOrder`).
+* ``random_walk``: angular random walk (Hauberg eq. 3, Fontmarty §3.1) restricted to the joint limits, with
+  per-DOF stds from the kinematic structure (``stds="structural"``, :mod:`priors.diffusion`: the std that
+  moves the farthest capsule point a DOF drives by a measured speed / fps; no joint names read), or
+  ``stds="table5"`` (Fontmarty Table 5 by joint names, :mod:`priors.table5`), or explicit ``(D,)`` values.
+* ``constant_velocity``: Rius eq. 3 (:class:`priors.motion.ConstantVelocity`), diffusion as ``random_walk``.
+* ``damped``: Brubaker eq. 13 (:class:`priors.motion.DampedSecondOrder`), diffusion as ``random_walk``.
 * ``action``: the action-constrained dynamics of Rius eq. 3 + 6 from a saved action model (``model=path``).
+* ``learned``: stds (and α) learned from mocap by ``python -m training fit-dynamics`` (``path=dyn.npz``,
+  :class:`priors.diffusion.LearnedDynamics`): a random walk, or Rius eq. 3 with ``model="constant_velocity"``.
+
+The diffusion factories log a one-line summary of their stds per body part to the ``priors`` logger (INFO)
+and warn when they guess (no ``fps``, Table 5 names that would hold a moving DOF still).
 
 Example::
 
     from torchpf import Tracker
-    tracker = Tracker(skel, cams, dynamics="random_walk", dynamics_options={"fps": 15.0, "scale": 0.5})
+    tracker = Tracker(skel, cams, dynamics="random_walk", fps=15.0, dynamics_options={"scale": 0.5})
+    tracker = Tracker(skel, cams, dynamics="learned", fps=15.0, dynamics_options={"path": "dyn.npz"})
 """
 
 from __future__ import annotations
 
 from priors.action import ActionConstrained, ActionModel
+from priors.diffusion import LearnedDynamics, diffusion_sigma
 from priors.motion import AngularRandomWalk, ConstantVelocity, DampedSecondOrder
-from priors.table5 import TABLE5_FPS, table5_sigma
 
-__all__ = ["action", "constant_velocity", "damped", "random_walk"]
+__all__ = ["action", "constant_velocity", "damped", "learned", "random_walk"]
 
 
-def random_walk(skeleton, *, fps: float = TABLE5_FPS, scale: float = 1.0, **options):
-    """Angular random walk with Table 5 stds, restricted to the joint limits (Hauberg eq. 3)."""
-    return AngularRandomWalk.from_skeleton(skeleton, fps=fps, scale=scale, **options)
+def random_walk(skeleton, *, stds="structural", fps: float | None = None, scale: float = 1.0, **options):
+    """Angular random walk restricted to the joint limits (Hauberg eq. 3); ``stds``: ``"structural"``
+    (default), ``"table5"`` or ``(D,)`` values, per frame at ``fps`` (see
+    :func:`priors.diffusion.diffusion_sigma`)."""
+    return AngularRandomWalk.from_skeleton(skeleton, stds, fps=fps, scale=scale, **options)
 
 
 def constant_velocity(
-    skeleton, *, fps: float = TABLE5_FPS, scale: float = 1.0, alpha: float = 0.5, **options
+    skeleton,
+    *,
+    stds="structural",
+    fps: float | None = None,
+    scale: float = 1.0,
+    alpha: float = 0.5,
+    **options,
 ):
-    """Rius eq. 3 with Table 5 diffusion stds."""
-    return ConstantVelocity(table5_sigma(skeleton, fps, scale), alpha=alpha, **options)
+    """Rius eq. 3 with diffusion stds as :func:`random_walk`'s."""
+    sigma = diffusion_sigma(skeleton, stds, fps=fps, scale=scale, name="constant_velocity")
+    return ConstantVelocity(sigma, alpha=alpha, **options)
 
 
-def damped(skeleton, *, fps: float = TABLE5_FPS, scale: float = 1.0, kappa: float = 0.8, **options):
-    """Brubaker eq. 13 with Table 5 diffusion stds."""
-    return DampedSecondOrder(table5_sigma(skeleton, fps, scale), kappa=kappa, **options)
+def damped(
+    skeleton,
+    *,
+    stds="structural",
+    fps: float | None = None,
+    scale: float = 1.0,
+    kappa: float = 0.8,
+    **options,
+):
+    """Brubaker eq. 13 with diffusion stds as :func:`random_walk`'s."""
+    sigma = diffusion_sigma(skeleton, stds, fps=fps, scale=scale, name="damped")
+    return DampedSecondOrder(sigma, kappa=kappa, **options)
 
 
 def action(skeleton, *, model, **options):
@@ -46,3 +72,40 @@ def action(skeleton, *, model, **options):
     if not isinstance(model, ActionModel):
         model = ActionModel.load(model, dof_names=skeleton.dof_names)
     return ActionConstrained(model, **options)
+
+
+def learned(
+    skeleton,
+    *,
+    path,
+    model: str = "random_walk",
+    fps: float | None = None,
+    scale: float = 1.0,
+    **options,
+):
+    """Dynamics learned from mocap by ``python -m training fit-dynamics`` (a :class:`LearnedDynamics` file).
+
+    Args:
+        skeleton: the tracked skeleton; the file must have its DOF names (any order).
+        path: the ``.npz`` file, or a :class:`~priors.diffusion.LearnedDynamics`.
+        model: ``"random_walk"`` (the learned step stds in :class:`AngularRandomWalk`, within the joint
+            limits) or ``"constant_velocity"`` (Rius eq. 3 with the learned α and prediction-error stds).
+        fps: tracking frame rate; statistics fitted at another rate are rescaled
+            (:meth:`LearnedDynamics.at_fps`). ``None``: the file's rate.
+        scale: multiplies the stds.
+        **options: passed to the dynamics class (``limits``, ``max_tries``; ``dt``).
+    """
+    stats = path if isinstance(path, LearnedDynamics) else LearnedDynamics.load(path, skeleton.dof_names)
+    stats = stats.select(skeleton.dof_names)
+    stats = stats.at_fps(stats.fps if fps is None else fps)
+    if model == "random_walk":
+        sigma = diffusion_sigma(
+            skeleton, stats.step_std, fps=stats.fps, scale=scale, name="learned random_walk"
+        )
+        return AngularRandomWalk(sigma, skeleton.lower, skeleton.upper, **options)
+    if model == "constant_velocity":
+        sigma = diffusion_sigma(
+            skeleton, stats.cv_std, fps=stats.fps, scale=scale, name="learned constant_velocity"
+        )
+        return ConstantVelocity(sigma, alpha=stats.alpha, **options)
+    raise ValueError(f"model must be 'random_walk' or 'constant_velocity', got {model!r}")

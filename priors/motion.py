@@ -11,8 +11,8 @@ vectors in ``Skeleton.dof_names`` order (radians / metres).
   velocity ``V_t = α V_{t-1} + (1-α)(φ_{t-1} - φ_{t-2})`` carried as the extra ``"velocity"``.
 * :class:`DampedSecondOrder` -- Brubaker eq. 13: ``s_{t+1} = s_t + κ (s_t - s_{t-1}) + η``.
 * :class:`AngularRandomWalk` -- Hauberg eq. 3: ``p(θ_t | θ_{t-1}) ∝ N(θ_t | θ_{t-1}, diag σ²) U_Θ(θ_t)``,
-  the Gaussian random walk in joint angles truncated to the joint limits, with per-DOF σ defaulting to
-  Fontmarty Table 5 (:func:`priors.table5.table5_sigma`).
+  the Gaussian random walk in joint angles truncated to the joint limits, with per-DOF σ defaulting to the
+  structural stds of :mod:`priors.diffusion` (Fontmarty Table 5 on request).
 * :class:`ProjectedGaussian` -- Hauberg eq. 6-7: joint *positions* drawn from ``N(F(θ_{t-1}), Σ)`` with
   per-joint blocks ``Σ_l`` and projected onto the pose manifold by :func:`torchpf.ik.project`. Its spatial
   spread is the same for every joint, where the angular walk's grows along each kinematic chain (hands
@@ -20,7 +20,7 @@ vectors in ``Skeleton.dof_names`` order (radians / metres).
 
 Example::
 
-    walk = AngularRandomWalk.from_skeleton(skel, fps=30)      # Table-5 σ, exact truncation at the limits
+    walk = AngularRandomWalk.from_skeleton(skel, fps=30)      # structural σ, exact truncation at the limits
     x1 = walk.sample(x0, generator)                           # (..., N, D) -> (..., N, D)
     lp = walk.log_prob(x1, x0)                                # (..., N)
 """
@@ -33,7 +33,8 @@ from collections.abc import Mapping
 import torch
 from torch import Tensor
 
-from priors.table5 import TABLE5_FPS, table5_sigma
+from priors.diffusion import diffusion_sigma
+from priors.table5 import TABLE5_FPS
 from torchpf import ik
 from torchpf.distributions import LOG_2PI, Dynamics, diag_normal_log_prob, randn_like
 
@@ -283,17 +284,19 @@ class AngularRandomWalk(Dynamics):
     def from_skeleton(
         cls,
         skeleton,
-        sigma=None,
+        sigma="structural",
         *,
-        fps: float = TABLE5_FPS,
+        fps: float | None = TABLE5_FPS,
         scale: float = 1.0,
+        speeds=None,
         limits: str = "reject",
         max_tries: int = 50,
     ) -> AngularRandomWalk:
-        """Walk on ``skeleton``'s DOFs and limits; ``sigma`` defaults to
-        :func:`priors.table5.table5_sigma` (``fps``, ``scale``)."""
-        if sigma is None:
-            sigma = table5_sigma(skeleton, fps, scale)
+        """Walk on ``skeleton``'s DOFs and limits; ``sigma`` is ``"structural"`` (default: from the kinematic
+        tree and capsules, :func:`priors.diffusion.structural_sigma`), ``"table5"`` or ``(D,)`` values, at
+        ``fps`` (Hz; ``None`` warns and takes 5 Hz) times ``scale`` (:func:`priors.diffusion.diffusion_sigma`,
+        which logs a summary)."""
+        sigma = diffusion_sigma(skeleton, sigma, fps=fps, scale=scale, speeds=speeds)
         return cls(sigma, skeleton.lower, skeleton.upper, limits=limits, max_tries=max_tries)
 
     @property

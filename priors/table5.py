@@ -22,9 +22,10 @@ knee hinge joints                 0.1 rad
   CMU joint tree's ``LeftArm``/``LeftForeArm``/``LeftUpLeg``/``LeftLeg``). The table covers the 22 DOFs of
   Fontmarty's model only; the other joints of a richer skeleton (the CMU tree of ``human.urdf``) get the
   groups of :data:`EXTENSION`, which are ours, not the paper's.
-* :func:`table5_sigma` -- the ``(D,)`` per-DOF std at ``fps``: the default of
-  :class:`priors.motion.AngularRandomWalk.from_skeleton` and of the ``random_walk``, ``constant_velocity`` and
-  ``damped`` factories, and the ``--dynamics table5`` walk of ``benchmarks/evaluate.py``.
+* :func:`table5_sigma` -- the ``(D,)`` per-DOF std at ``fps``: the ``stds="table5"`` option of the
+  ``random_walk``, ``constant_velocity`` and ``damped`` factories (:func:`priors.diffusion.diffusion_sigma`,
+  which refines it so that no DOF that moves the body is held still), and the ``--dynamics table5`` walk of
+  ``benchmarks/evaluate.py``. The factories' default reads no names: :mod:`priors.diffusion`.
 
 Example::
 
@@ -34,7 +35,6 @@ Example::
 
 from __future__ import annotations
 
-import math
 import re
 
 import torch
@@ -70,11 +70,14 @@ _JOINT_GROUPS = (
 )
 
 
-def rescale(std, fps: float):
-    """Table 5 stds (at 5 Hz) per frame at ``fps`` (Hz): ``std * sqrt(5 / fps)``, any shape."""
-    if not fps > 0:
-        raise ValueError(f"fps must be > 0, got {fps}")
-    return std * math.sqrt(TABLE5_FPS / fps)
+def rescale(std, fps: float, *, from_fps: float = TABLE5_FPS, exponent: float = 0.5):
+    """Per-frame stds at ``from_fps`` (default Table 5's 5 Hz) as per-frame stds at ``fps`` (Hz), any shape:
+    ``std * (from_fps / fps) ** exponent``. ``exponent=0.5`` is a random walk's (variance linear in time, the
+    Table 5 rule: ``std * sqrt(5 / fps)``); ``exponent=1`` a speed's (the steps of real motion, see
+    :data:`priors.diffusion.SPEEDS`)."""
+    if not fps > 0 or not from_fps > 0:
+        raise ValueError(f"fps must be > 0, got {fps} (from {from_fps})")
+    return std * (from_fps / fps) ** exponent
 
 
 def dof_groups(skeleton) -> list[str]:

@@ -35,7 +35,9 @@ def _parser() -> argparse.ArgumentParser:
     tr.add_argument("--config", help="YAML with Tracker keywords (command-line options override it)")
     tr.add_argument("--action", help="action model (.npz) for the action-constrained prior (Rius)")
     tr.add_argument(
-        "--dynamics", help="registered motion prior (default random_walk, or action with --action)"
+        "--dynamics",
+        help="registered motion prior (default random_walk, or action with --action), or a FILE.npz of "
+        "'python -m training fit-dynamics' (the 'learned' prior)",
     )
     tr.add_argument("--filter", help="sir, qrs, partitioned, partitioned_qrs, apf, mcmc (default apf)")
     tr.add_argument("--particles", type=int, help="likelihood evaluations per frame (default 500)")
@@ -116,6 +118,12 @@ def _track(args) -> int:
         kwargs["dynamics_options"] = {
             **kwargs.get("dynamics_options", {}),
             "model": _require_file(args.action, "action model"),
+        }
+    elif args.dynamics and args.dynamics.lower().endswith(".npz"):  # learned stds: the file is an option
+        kwargs["dynamics"] = "learned"
+        kwargs["dynamics_options"] = {
+            **kwargs.get("dynamics_options", {}),
+            "path": _require_file(args.dynamics, "dynamics file"),
         }
     elif args.dynamics:
         kwargs["dynamics"] = args.dynamics

@@ -5,14 +5,16 @@ Commands::
     python -m training convert FILE.bvh --scale S --out-dir DIR    # -> DIR/skeleton.urdf + DIR/FILE.csv
     python -m training fit --action walk --skeleton S.urdf --out walk.npz DATA/*.csv
     python -m training inspect walk.npz --out DIR                  # -> DIR/synchronisation.png, ...
+    python -m training fit-dynamics DATA/*.csv --skeleton S.urdf --out dyn.npz [--fps 30]
 
 ``convert`` turns a BVH file into a torchpf skeleton (URDF, z up, metres) and a mocap CSV of its angle
 tracks in the skeleton's ``dof_names`` order (see :mod:`training.mocap`). ``fit`` learns an action model
 (Rius eq. 1-3, :mod:`training.fit`) from performances of one action and saves it as ``.npz``
 (:mod:`priors.action`); ``inspect`` prints its summary and saves the plots of Rius Fig. 1
-(:mod:`training.plots`). Bad input ends with a one-line ``error:`` message on stderr and exit status 2.
-Each command is one subparser with its own ``--help``; more commands plug in the same way through
-:func:`build_parser`.
+(:mod:`training.plots`). ``fit-dynamics`` learns per-DOF step stds and the constant-velocity α
+(:mod:`training.dynamics`) for ``python -m torchpf track --dynamics dyn.npz``. Bad input ends with a
+one-line ``error:`` message on stderr and exit status 2. Each command is one subparser with its own
+``--help``; more commands plug in the same way through :func:`build_parser`.
 """
 
 from __future__ import annotations
@@ -138,6 +140,26 @@ def _inspect(args: argparse.Namespace) -> int:
     return 0
 
 
+def _fit_dynamics(args: argparse.Namespace) -> int:
+    from priors.diffusion import sigma_summary
+    from torchpf.skeleton import Skeleton
+    from training.dynamics import learn_from_files
+
+    if args.out.suffix != ".npz":
+        raise ValueError(f"--out must name a .npz file, got {str(args.out)!r}")
+    if args.skip_first < 0:
+        raise ValueError(f"--skip-first must be >= 0, got {args.skip_first}")
+    skeleton = Skeleton.from_urdf(args.skeleton)
+    stats = learn_from_files(args.files, skeleton, fps=args.fps, alpha=args.alpha, skip_first=args.skip_first)
+    stats.save(args.out)
+    print(
+        f"wrote {args.out}: {len(stats.dof_names)} DOFs from {len(args.files)} files "
+        f"({stats.info['frames']} frames) at {stats.fps:g} fps, alpha={stats.alpha:.3g}"
+    )
+    print(sigma_summary(skeleton, stats.step_std, fps=stats.fps, source="learned"))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The ``python -m training`` parser; each subcommand sets ``func(args) -> exit status``."""
     parser = argparse.ArgumentParser(prog=PROG, description="Mocap conversion and action-model training.")
@@ -232,6 +254,29 @@ def build_parser() -> argparse.ArgumentParser:
     inspect.add_argument("--out", required=True, metavar="DIR", help="folder for the PNG files")
     inspect.add_argument("--dims", type=int, default=4, help="aSpace dimensions to plot (4)")
     inspect.set_defaults(func=_inspect)
+
+    dyn = commands.add_parser(
+        "fit-dynamics",
+        help="mocap CSVs -> learned per-DOF step stds and constant-velocity alpha (.npz)",
+        description="Learn per-DOF random-walk step stds (1.4826 x median |step|) and the constant-velocity "
+        "alpha of Rius eq. 3 from mocap CSVs of a skeleton, and save them as .npz for "
+        "'python -m torchpf track --dynamics FILE.npz'.",
+    )
+    dyn.add_argument("files", nargs="+", metavar="FILE.csv", help="performances (mocap CSV)")
+    dyn.add_argument("--skeleton", required=True, metavar="S.urdf", help="skeleton the CSVs must match")
+    dyn.add_argument("--out", required=True, type=Path, metavar="DYN.npz", help="output file")
+    dyn.add_argument(
+        "--fps", type=_positive_float, help="rate of the statistics (track at it); default: the files' rate"
+    )
+    dyn.add_argument("--alpha", type=float, help="fix the velocity smoothing alpha instead of fitting it")
+    dyn.add_argument(
+        "--skip-first",
+        type=int,
+        default=0,
+        metavar="N",
+        help="drop the first N frames of every file (CMU conversions: 1, a rest pose)",
+    )
+    dyn.set_defaults(func=_fit_dynamics)
     return parser
 
 

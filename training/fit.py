@@ -152,6 +152,20 @@ def constant_velocity_errors(deltas: np.ndarray, alpha: float) -> np.ndarray:
     return deltas[1:] - v[:-1]
 
 
+def fit_alpha(deltas: Sequence[np.ndarray]) -> float:
+    """Rius eq. 3's α: the velocity smoothing in ``[0, 0.999]`` that minimises the squared prediction error
+    ``Σ ||constant_velocity_errors(δ, α)||²`` over performances (bounded scalar least squares).
+
+    Args:
+        deltas: per performance, ``(T_r - 1, D)`` frame differences of the DOFs that count.
+    """
+
+    def loss(alpha: float) -> float:
+        return float(sum(np.sum(constant_velocity_errors(d, alpha) ** 2) for d in deltas))
+
+    return float(minimize_scalar(loss, bounds=(0.0, 0.999), method="bounded").x)
+
+
 # ================================================================================================ fitter
 class ActionModelFitter:
     """Learn an :class:`~priors.action.ActionModel` from performances of one action (sklearn style).
@@ -364,14 +378,7 @@ class ActionModelFitter:
 
         # 7. constant-velocity statistics
         deltas = [np.diff(a, axis=0) for a in full]
-        if self.alpha is None:
-
-            def loss(alpha: float) -> float:
-                return float(sum(np.sum(constant_velocity_errors(d[:, pidx], alpha) ** 2) for d in deltas))
-
-            alpha = float(minimize_scalar(loss, bounds=(0.0, 0.999), method="bounded").x)
-        else:
-            alpha = float(self.alpha)
+        alpha = fit_alpha([d[:, pidx] for d in deltas]) if self.alpha is None else float(self.alpha)
         errors = np.concatenate([constant_velocity_errors(d, alpha) for d in deltas])
         sigma_phi = 1.4826 * np.median(np.abs(errors), 0) if len(errors) else np.zeros(len(names))
 

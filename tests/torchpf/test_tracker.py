@@ -163,13 +163,13 @@ def test_public_name():
 
 
 def test_named_prior_gets_the_frame_rate(scene):
-    from priors.table5 import table5_sigma
+    from priors.diffusion import structural_sigma
 
     skel, cams, _, _ = scene
     tracker = Tracker(
         skel, cams, dynamics="random_walk", fps=20.0, filter="sir", n_particles=10, progress=False
     )
-    torch.testing.assert_close(torch.as_tensor(tracker.dynamics.sigma), table5_sigma(skel, fps=20.0))
+    torch.testing.assert_close(torch.as_tensor(tracker.dynamics.sigma), structural_sigma(skel, fps=20.0))
 
 
 def test_auto_temperature_sets_the_first_frame_survival_rate(scene):
