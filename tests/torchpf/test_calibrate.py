@@ -158,6 +158,25 @@ def test_fit_converges_from_a_wrong_pose(human, scene):
     assert float(after.mean()) < float(error.mean())
 
 
+def test_fit_lengths_recovers_longer_thighs(human, scene):
+    lengths = {"LeftLeg": 1.12, "RightLeg": 1.12, "LeftForeArm": 0.9, "RightForeArm": 0.9}
+    truth = human.with_body(scale=TRUE_SCALE, lengths=lengths)
+    poses = scene["poses"].clone()
+    up = human.dof_names.index("Hips_Yposition")
+    poses[:, up] = 0.0
+    poses[:, up] = 0.05 - truth.fk(poses)[..., 2].min(-1).values
+    joints = truth.fk(poses)
+    rig = scene["rig"]
+    masks = np.stack([render_masks(joints[f], truth.tree.bones, truth.radii, rig.cameras) for f in range(5)])
+    fitted, report = fit_body(scene["stick"], rig, masks, poses, iterations=200, fit_lengths=True)
+    factor = dict(zip(report.labels, report.lengths.tolist(), strict=True))
+    # absolute lengths (global scale x factor); the factors are weakly held at 1, the forearm most visibly
+    assert report.scale * factor["LeftLeg/RightLeg"] == pytest.approx(TRUE_SCALE * 1.12, rel=0.04)
+    assert report.scale * factor["LeftForeArm/RightForeArm"] == pytest.approx(TRUE_SCALE * 0.9, rel=0.08)
+    assert min(report.iou_after.values()) > 0.97
+    assert float((fitted.fk(report.poses) - joints).norm(dim=-1).mean()) < 0.02
+
+
 def test_cli_calibrate(scene, tmp_path, capsys):
     seq = SequenceData(
         cameras=scene["rig"],
