@@ -446,6 +446,8 @@ def fit_body(
     if not idx:
         raise ValueError("fit_body: no frame to fit")
     raw = list(frames) if not isinstance(frames, (np.ndarray, torch.Tensor)) else frames
+    if max(idx) >= min(len(raw), len(poses)) or min(idx) < 0:
+        raise ValueError(f"fit_body: frames {idx} out of range ({len(raw)} frames, {len(poses)} poses)")
     masks, valid = _as_masks([raw[i] for i in idx] if isinstance(raw, list) else raw[idx], len(idx))
     if masks.shape[1] != len(cameras):
         raise ValueError(f"frames have {masks.shape[1]} cameras, the rig has {len(cameras)}")
@@ -573,7 +575,7 @@ def fit_body(
             losses.append(value)
             if bar is not None:
                 bar.update(1)
-                bar.set_postfix(loss=f"{value:.4g}", softness=width)
+                bar.set_postfix(loss=f"{value:.4g}", softness=width, refresh=False)
             if value < best * (1 - tol):
                 best, since = value, 0
             else:
