@@ -3,11 +3,15 @@
     python -m torchpf track SEQ_DIR --skeleton S.urdf [--action walk.npz] --filter apf --particles 500 \\
         --out track.csv
     python -m torchpf evaluate track.csv [run2.csv ...] --truth truth.csv --skeleton S.urdf
+    python -m torchpf calibrate SEQ_DIR --skeleton S.urdf --out FITTED.urdf [--frames K] \\
+        [--init truth|POSE.csv]
 
 ``track`` reads a sequence directory (DESIGN.md: cameras.yaml, masks/, optional points/, truth.csv), builds a
 :class:`~torchpf.tracker.Tracker` and writes the estimated motion as mocap CSV. ``evaluate`` compares one or
 several tracks (several runs of a stochastic tracker) with the ground truth: Fontmarty's RMSE, bias,
-dispersion and failure rate (eq. 3-6), MPJPE and the angle MSE. Bad input ends with a one-line error and
+dispersion and failure rate (eq. 3-6), MPJPE and the angle MSE. ``calibrate`` fits the body's capsule radii
+and scale to the first frames' masks (:func:`torchpf.calibrate.fit_body`), writes the fitted URDF and an
+overlay PNG (masks against the fitted model) next to it. Bad input ends with a one-line error and
 exit status 2.
 """
 
@@ -60,6 +64,21 @@ def _parser() -> argparse.ArgumentParser:
     ev.add_argument("--truth", required=True, help="ground-truth mocap CSV")
     ev.add_argument("--skeleton", required=True, help="URDF used for the joint positions")
     ev.add_argument("--threshold", type=float, default=0.25, help="T_failure (m), Fontmarty eq. 6")
+
+    ca = sub.add_parser("calibrate", help="fit the body's radii and scale to the masks, write a URDF")
+    ca.add_argument("sequence", help="sequence directory (cameras.yaml, masks/, truth.csv)")
+    ca.add_argument("--skeleton", required=True, help="URDF of the body to fit")
+    ca.add_argument("--out", required=True, help="fitted URDF (the overlay PNG is written next to it)")
+    ca.add_argument("--frames", type=int, default=8, help="number of first frames fitted (default 8)")
+    ca.add_argument(
+        "--init",
+        default="auto",
+        help="initial poses: truth (truth.csv), a mocap CSV of poses (one row per frame, or one row for "
+        "all), or auto (truth.csv when present)",
+    )
+    ca.add_argument("--fit-lengths", action="store_true", help="also fit one length factor per bone group")
+    ca.add_argument("--iterations", type=int, default=400, help="most optimiser steps (default 400)")
+    ca.add_argument("--no-progress", action="store_true")
     return ap
 
 
@@ -193,10 +212,71 @@ def _evaluate(args) -> int:
     return 0
 
 
+def _calibrate(args) -> int:
+    import numpy as np
+
+    from torchpf.calibrate import fit_body, overlay_image
+    from torchpf.io import read_mocap_csv, write_atomic
+    from torchpf.sequence import read_sequence
+    from torchpf.skeleton import Skeleton
+
+    skel = Skeleton.from_urdf(_require_file(args.skeleton, "skeleton"))
+    if not os.path.isdir(args.sequence):
+        raise CliError(f"sequence directory not found: {args.sequence}")
+    if args.frames < 1:
+        raise CliError(f"--frames must be >= 1, got {args.frames}")
+    seq = read_sequence(args.sequence)
+    k = min(args.frames, len(seq.masks))
+    if k == 0:
+        raise CliError(f"{args.sequence}: no masks to calibrate on")
+    if args.init in ("auto", "truth"):
+        if seq.truth is None:
+            raise CliError(f"{args.sequence}: no truth.csv for the initial poses; pass --init POSE.csv")
+        if list(seq.dof_names) != list(skel.dof_names):
+            _, _, values = read_mocap_csv(
+                os.path.join(args.sequence, "truth.csv"), expected_dof_names=skel.dof_names
+            )
+            poses = torch.as_tensor(values, dtype=torch.float64)
+        else:
+            poses = seq.truth.to(torch.float64)
+    else:
+        _, _, values = read_mocap_csv(_require_file(args.init, "--init pose CSV"), skel.dof_names)
+        poses = torch.as_tensor(values, dtype=torch.float64)
+    if len(poses) == 0:
+        raise CliError("the initial pose CSV has no rows")
+    if len(poses) < k:  # one pose (or too few) for all frames: repeat the last
+        poses = torch.cat([poses, poses[-1:].expand(k - len(poses), -1)])
+    fitted, report = fit_body(
+        skel,
+        seq.cameras,
+        seq.masks[:k],
+        poses[:k],
+        frames_used=k,
+        fit_lengths=args.fit_lengths,
+        iterations=args.iterations,
+        progress=not args.no_progress,
+    )
+    fitted.save_urdf(args.out)
+    import cv2
+
+    overlay = overlay_image(fitted, seq.cameras, seq.masks[0], report.poses[0])
+    png = os.path.splitext(args.out)[0] + "_overlay.png"
+    ok, data = cv2.imencode(".png", overlay)
+    if not ok:
+        raise CliError("cannot encode the overlay PNG")
+    write_atomic(png, np.asarray(data).tobytes())
+    print(report.table())
+    print(f"wrote {args.out} and {png}")
+    return 0
+
+
+_COMMANDS = {"track": _track, "evaluate": _evaluate, "calibrate": _calibrate}
+
+
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     try:
-        return _track(args) if args.command == "track" else _evaluate(args)
+        return _COMMANDS[args.command](args)
     except (CliError, ValueError, FileNotFoundError, OSError) as e:
         print(f"python -m torchpf {args.command}: error: {e}", file=sys.stderr)
         return 2

@@ -50,6 +50,7 @@ from torchpf.kinematics.urdf import (
     link_geometry,
     parse_urdf_xml,
     read_urdf_text,
+    rebody_urdf,
 )
 
 _REVOLUTE, _PRISMATIC = "revolute", "prismatic"
@@ -156,6 +157,7 @@ class Skeleton(nn.Module):
         super().__init__()
         self.chain = chain
         self.source = source
+        self.urdf_xml = urdf_xml  # what with_body / save_urdf rewrite
         geometry = link_geometry(parse_urdf_xml(urdf_xml, source))
         frames = flatten_chain(chain)
         self.dof_names: list[str] = list(chain.get_joint_parameter_names())
@@ -556,6 +558,91 @@ class Skeleton(nn.Module):
         idx = self.tree.bones.to(joints.device)
         ends = joints[..., idx, :]  # (..., C, 2, 3)
         return ends, self.radii.to(device=joints.device, dtype=joints.dtype)
+
+    # ------------------------------------------------------------------ body shape
+    def _body_xml(self, radii=None, scale: float = 1.0, lengths=None) -> str:
+        """URDF text of this skeleton with capsule radii ``radii`` (C,) m before ``scale``, global ``scale``
+        and per-joint bone-length factors ``lengths`` (J,); see :meth:`with_body`."""
+        scale = float(scale)
+        r = self.radii if radii is None else self._per_bone(radii)
+        l_joint = torch.ones(len(self.joint_names), dtype=torch.float64)
+        if lengths is not None:
+            if isinstance(lengths, Mapping):
+                unknown = sorted(set(lengths) - set(self.joint_names))
+                if unknown:
+                    raise ValueError(f"with_body: lengths names no body joint: {unknown}")
+                for name, f in lengths.items():
+                    l_joint[self.joint_names.index(name)] = float(f)
+            else:
+                l_joint = torch.as_tensor(lengths, dtype=torch.float64).reshape(-1)
+                if l_joint.shape != (len(self.joint_names),):
+                    raise ValueError(f"with_body: lengths must have shape ({len(self.joint_names)},)")
+        if not scale > 0 or not bool((l_joint > 0).all()) or not bool((r >= 0).all()):
+            raise ValueError("with_body: scale and lengths must be > 0, radii >= 0")
+        root = parse_urdf_xml(self.urdf_xml, self.source)
+        joint_above = {j.find("child").get("link"): j.get("name") for j in root.iter("joint")}
+        frames = flatten_chain(self.chain)
+        frame_of = {f.name: i for i, f in enumerate(frames)}
+        joint_scales = {}
+        for c, p in enumerate(self.parents):
+            if p < 0 or float(l_joint[c]) == 1.0:
+                continue
+            # the URDF joints of the run between the parent body joint and this one carry the offset
+            i, stop = frame_of[self.joint_names[c]], frame_of[self.joint_names[p]]
+            while i != stop:
+                joint_scales[joint_above[frames[i].name]] = float(l_joint[c])
+                i = frames[i].parent
+        T = self.transforms(torch.zeros(len(self.dof_names), dtype=torch.float64))
+        capsules: dict[str, list] = {}
+        for (p, c), radius in zip(self.bones, r.tolist(), strict=True):
+            offset = T[p, :3, :3].t() @ (T[c, :3, 3] - T[p, :3, 3]) * scale * float(l_joint[c])
+            capsules.setdefault(self.joint_names[p], []).append(
+                (self.joint_names[c], offset.tolist(), radius * scale)
+            )
+        return rebody_urdf(
+            self.urdf_xml, scale=scale, joint_scales=joint_scales, capsules=capsules, source=self.source
+        )
+
+    def _per_bone(self, radii) -> torch.Tensor:
+        if isinstance(radii, Mapping):
+            children = [self.joint_names[c] for _, c in self.bones]
+            unknown = sorted(set(radii) - set(children))
+            if unknown:
+                raise ValueError(f"with_body: radii names no bone (child joint): {unknown}")
+            current = self.radii.tolist()
+            return torch.tensor([float(radii.get(n, r)) for n, r in zip(children, current, strict=True)])
+        r = torch.as_tensor(radii, dtype=torch.float64).detach().cpu().reshape(-1)
+        if r.shape != (len(self.bones),):
+            raise ValueError(f"with_body: radii must have shape ({len(self.bones)},) in bones order")
+        return r
+
+    def with_body(self, *, radii=None, scale: float = 1.0, lengths=None) -> Skeleton:
+        """A new skeleton with the same DOFs and joints and another body shape.
+
+        Args:
+            radii: capsule radii (m) before ``scale``: (C,) in ``bones`` order, or a mapping child body
+                joint name -> radius (the bones not named keep theirs); None keeps ``self.radii``.
+            scale: global factor (> 0) on every bone offset (so every bone length) and on the radii. Pose
+                vectors keep their meaning: ``with_body(scale=s).fk(theta) == s * fk(theta')`` with the
+                prismatic DOFs of ``theta'`` divided by ``s``.
+            lengths: bone-length factors (> 0): (J,) per body joint (the bone ending there) or a mapping
+                body joint name -> factor; the root's is ignored.
+
+        The new skeleton is built from this one's URDF rewritten by
+        :func:`~torchpf.kinematics.urdf.rebody_urdf` (its ``urdf_xml``), so :meth:`save_urdf` and
+        :meth:`from_urdf` give it back as it is.
+        """
+        xml = self._body_xml(radii, scale, lengths)
+        return Skeleton(build_chain(xml, self.source), xml, joint_names=self.joint_names, source=self.source)
+
+    def save_urdf(self, path: str | os.PathLike) -> None:
+        """Write this skeleton as URDF, atomically: the URDF it was read from with one ``<collision
+        name="CHILD">`` cylinder per bone holding the current radius, so that :meth:`from_urdf` reloads the
+        same DOFs, limits, FK and radii (whatever the radii came from: URDF, a ``radii`` table, the
+        ``0.15 x`` length default or :meth:`with_body`)."""
+        from torchpf.io import write_text_atomic
+
+        write_text_atomic(path, self._body_xml())
 
     def extra_repr(self) -> str:
         return (

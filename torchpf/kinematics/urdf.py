@@ -6,7 +6,8 @@ warnings), that chain flattened depth-first into :class:`Frame` records (one per
 it), and the capsule radii that ``<collision>``/``<visual>`` elements give. :class:`torchpf.skeleton.Skeleton`
 compiles these into its :class:`~torchpf.kinematics.tree.KinematicTree` and FK kernel.
 
-**Writing** (:func:`build_urdf`): pytorch-kinematics (and URDF itself) has no ball or floating joint, so a
+**Writing** (:func:`build_urdf`; :func:`rebody_urdf` gives an existing URDF another body: scaled lengths,
+new capsule radii): pytorch-kinematics (and URDF itself) has no ball or floating joint, so a
 body joint with several degrees of freedom becomes a run of single-DOF URDF joints linked by massless
 intermediate links::
 
@@ -203,6 +204,78 @@ def _body_link(j: BodyJoint, kids: list[BodyJoint], radii: Mapping[str, float], 
     if not geoms:
         return [f"  <link name={quoteattr(j.name)}/>"]
     return [f"  <link name={quoteattr(j.name)}>", *geoms, "  </link>"]
+
+
+def _scaled_attr(el: ET.Element, key: str, factor: float) -> None:
+    value = el.get(key)
+    if value is not None and factor != 1.0:
+        el.set(key, _fmt([float(v) * factor for v in value.split()]))
+
+
+def rebody_urdf(
+    xml: str,
+    *,
+    scale: float = 1.0,
+    joint_scales: Mapping[str, float] | None = None,
+    capsules: Mapping[str, Sequence[tuple[str, Sequence[float], float]]] | None = None,
+    source: str = "<urdf string>",
+) -> str:
+    """The URDF text ``xml`` with another body: lengths scaled and bone capsules rewritten.
+
+    Everything else (joints, axes, limits, names, other links' geometry) is kept, so the skeleton read back
+    has the same DOFs and body joints.
+
+    Args:
+        xml: URDF text.
+        scale: global factor on every ``<origin xyz>`` (joints and link geometry) and on the sizes of the
+            geometry that is not rewritten; prismatic limits are not scaled (a pose's root translation is a
+            position in the world, not a body length).
+        joint_scales: URDF joint name -> extra factor on that joint's ``<origin xyz>`` (a bone-length
+            scale: the joint whose origin is the bone's offset from its parent body joint).
+        capsules: parent link name -> ``[(child body joint, offset (3,) m of the child in the link frame,
+            radius m)]``: each becomes a ``<collision name="child">`` cylinder posed along the bone (the
+            form :func:`link_geometry` reads radii from, :func:`build_urdf`'s form); collisions of that
+            link with the same name, and its unnamed cylinders/capsules (which described the bones), are
+            removed. The offsets are taken as given (already scaled).
+
+    Returns:
+        The new URDF document as a string.
+    """
+    root = parse_urdf_xml(xml, source)
+    joint_scales = dict(joint_scales or {})
+    capsules = dict(capsules or {})
+    for joint in root.iter("joint"):
+        origin = joint.find("origin")
+        if origin is not None:
+            _scaled_attr(origin, "xyz", scale * float(joint_scales.get(joint.get("name"), 1.0)))
+    for link in root.iter("link"):
+        rewritten = capsules.get(link.get("name"), ())
+        names = {child for child, _, _ in rewritten}
+        for el in list(link):
+            geom = el.find("geometry")
+            shape = None if geom is None else next(iter(geom), None)
+            if el.tag == "collision" and (
+                el.get("name") in names
+                or (rewritten and el.get("name") is None and shape is not None and shape.tag != "sphere")
+            ):
+                link.remove(el)
+                continue
+            origin = el.find("origin")
+            if origin is not None:
+                _scaled_attr(origin, "xyz", scale)
+            if shape is not None:
+                for key in ("radius", "length", "size"):
+                    _scaled_attr(shape, key, scale)
+        for child, offset, radius in rewritten:
+            offset = [float(v) for v in offset]
+            length = math.sqrt(sum(v * v for v in offset))
+            rpy = _rpy_aligning_z(offset) if length > 1e-12 else (0.0, 0.0, 0.0)
+            el = ET.SubElement(link, "collision", name=child)
+            ET.SubElement(el, "origin", xyz=_fmt([0.5 * v for v in offset]), rpy=_fmt(rpy))
+            geom = ET.SubElement(el, "geometry")
+            ET.SubElement(geom, "cylinder", radius=f"{float(radius):.9g}", length=f"{length:.9g}")
+    ET.indent(root, space="  ")
+    return '<?xml version="1.0"?>\n' + ET.tostring(root, encoding="unicode") + "\n"
 
 
 # ------------------------------------------------------------------------------------------------ reading

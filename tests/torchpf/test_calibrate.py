@@ -1,0 +1,204 @@
+"""Body calibration (`torchpf.calibrate`), `Skeleton.with_body` / `save_urdf` and the CLI.
+
+The masks come from the independent renderer of `_masks.py` (convex hulls of projected sphere points drawn
+with OpenCV), never from torchpf.synth or torchpf.geometry. The subject is the shipped human with its
+realistic radii and 4 % taller; the fit starts from the same skeleton with radii a quarter of those (a
+converted stick figure) and scale 1.
+"""
+
+import numpy as np
+import pytest
+import torch
+
+from torchpf import Skeleton
+from torchpf.__main__ import main
+from torchpf.assets import path
+from torchpf.calibrate import bone_groups, fit_body, scaled_joints
+from torchpf.camera import camera_ring
+from torchpf.sequence import SequenceData, write_sequence
+
+from ._masks import render_masks
+
+TRUE_SCALE = 1.04
+N_FRAMES = 5
+
+
+@pytest.fixture(scope="module")
+def scene(human):
+    """3 cameras 160x120 on a 3 m ring, 5 poses (random limb angles, turning), masks of the true body."""
+    rig = camera_ring(3, radius=3.0, height=1.5, target=(0, 0, 0.85), width=160, height_px=120)
+    truth = human.with_body(scale=TRUE_SCALE)
+    g = torch.Generator().manual_seed(1)
+    D = len(human.dof_names)
+    revolute = human.dof_revolute
+    poses = torch.zeros(N_FRAMES, D, dtype=torch.float64)
+    poses[:, revolute] = 0.35 * torch.randn(N_FRAMES, int(revolute.sum()), generator=g, dtype=torch.float64)
+    poses[:, :6] = 0.0
+    poses[:, 3] = torch.linspace(0.0, 2.5, N_FRAMES)  # turn about the vertical
+    poses = human.clamp(poses)
+    up = human.dof_names.index("Hips_Yposition")  # its URDF axis is world z
+    poses[:, up] = 0.05 - truth.fk(poses)[..., 2].min(-1).values
+    joints = truth.fk(poses)
+    masks = np.stack([render_masks(joints[f], truth.tree.bones, truth.radii, rig.cameras) for f in range(5)])
+    stick = human.with_body(radii=human.radii * 0.25)
+    return {"rig": rig, "truth": truth, "poses": poses, "masks": masks, "stick": stick}
+
+
+def _observable(skel, groups, min_length=0.1):
+    """Groups whose bones are at least ``min_length`` m long (>= 4 px here): shorter ones (fingers, toe
+    tips, the neck) hide mostly inside their neighbours' end caps and have no radius of their own to see."""
+    rest = skel.fk(torch.zeros(len(skel.dof_names), dtype=torch.float64))
+    out = []
+    for g, bones in enumerate(groups):
+        p, c = skel.bones[bones[0]]
+        if float((rest[c] - rest[p]).norm()) >= min_length:
+            out.append(g)
+    return out
+
+
+def _check_fit(human, fitted, report):
+    true_radii = human.radii * TRUE_SCALE
+    observable = _observable(human, report.groups)
+    assert len(observable) >= 10
+    for g in observable:
+        want = float(true_radii[report.groups[g]].mean())
+        got = float(report.radii_after[g])
+        assert got == pytest.approx(want, rel=0.10), report.labels[g]
+    assert report.scale == pytest.approx(TRUE_SCALE, rel=0.03)
+    # the fitted skeleton carries them (radius = group radius; with_body applied the scale)
+    assert torch.allclose(
+        fitted.radii,
+        report.radii_after[
+            [g for b in range(len(human.bones)) for g, m in enumerate(report.groups) if b in m]
+        ],
+        rtol=1e-6,
+    )
+    for cam in report.iou_after:
+        assert report.iou_after[cam] > 0.95 > report.iou_before[cam]
+
+
+def test_bone_groups_tie_mirror_limbs_from_structure(human):
+    groups = bone_groups(human)
+    assert sorted(b for g in groups for b in g) == list(range(len(human.bones)))
+    named = {tuple(sorted(human.joint_names[human.bones[b][1]] for b in g)) for g in groups}
+    for pair in [("LeftLeg", "RightLeg"), ("LeftForeArm", "RightForeArm"), ("LeftFoot", "RightFoot")]:
+        assert pair in named
+    assert ("Spine",) in named and ("Head_end",) in named  # torso bones stand alone
+    # names play no part: fontmarty22 calls its joints l_knee / r_knee
+    f22 = Skeleton.from_urdf(path("fontmarty22.urdf"))
+    named = {tuple(sorted(f22.joint_names[f22.bones[b][1]] for b in g)) for g in bone_groups(f22)}
+    assert ("l_knee", "r_knee") in named and ("l_elbow", "r_elbow") in named and ("neck",) in named
+
+
+def test_scaled_joints_is_with_body_fk(human):
+    g = torch.Generator().manual_seed(0)
+    theta = human.clamp(0.3 * torch.randn(3, len(human.dof_names), generator=g, dtype=torch.float64))
+    theta[:, :3] = torch.tensor([0.2, 0.9, -0.1], dtype=torch.float64)
+    lengths = torch.ones(len(human.joint_names), dtype=torch.float64)
+    lengths[human.joint_names.index("LeftLeg")] = 1.2
+    lengths[human.joint_names.index("RightForeArm")] = 0.9
+    from torchpf.calibrate import _ancestors
+
+    got = scaled_joints(
+        human, theta, torch.tensor(1.1, dtype=torch.float64).log(), lengths.log(), _ancestors(human.parents)
+    )
+    want = human.with_body(scale=1.1, lengths=lengths).fk(theta)
+    assert torch.allclose(got, want, atol=1e-6)
+
+
+def test_save_urdf_round_trip(human, tmp_path):
+    body = human.with_body(
+        radii={"LeftLeg": 0.09, "RightLeg": 0.09},
+        scale=1.07,
+        lengths={"LeftForeArm": 1.1, "RightForeArm": 1.1},
+    )
+    body.save_urdf(tmp_path / "fitted.urdf")
+    back = Skeleton.from_urdf(tmp_path / "fitted.urdf")
+    assert back.joint_names == body.joint_names and back.dof_names == body.dof_names
+    assert back.bones == body.bones
+    assert torch.equal(back.lower, human.lower) and torch.equal(back.upper, human.upper)
+    theta = human.clamp(0.4 * torch.randn(4, len(human.dof_names), dtype=torch.float64))
+    assert torch.allclose(back.fk(theta), body.fk(theta), atol=1e-7)
+    assert torch.allclose(back.radii, body.radii, rtol=1e-8)
+    leg = [c for _, c in body.bones].index(body.joint_names.index("LeftLeg"))
+    assert float(back.radii[leg]) == pytest.approx(0.09 * 1.07)
+    # radii that came from a table, not from the URDF, are written too
+    table = Skeleton.from_urdf(path("fontmarty22.urdf"), radii={"l_knee": 0.123})
+    table.save_urdf(tmp_path / "table.urdf")
+    assert torch.allclose(Skeleton.from_urdf(tmp_path / "table.urdf").radii, table.radii, rtol=1e-8)
+
+
+def test_fit_recovers_radii_and_scale(human, scene):
+    fitted, report = fit_body(scene["stick"], scene["rig"], scene["masks"], scene["poses"], iterations=200)
+    _check_fit(human, fitted, report)
+    assert report.iterations == len(report.loss) <= 200 and report.loss[-1] < 0.1 * report.loss[0]
+    assert "LeftLeg/RightLeg" in report.table() and "cam0" in report.table()
+
+
+def test_fit_converges_from_a_wrong_pose(human, scene):
+    g = torch.Generator().manual_seed(3)
+    revolute = human.dof_revolute
+    delta = torch.zeros_like(scene["poses"])
+    delta[:, revolute] = torch.randn(N_FRAMES, int(revolute.sum()), generator=g, dtype=torch.float64)
+    delta[:, :3] = 1.0
+
+    def joint_error(k):
+        wrong = human.clamp(scene["poses"] + k * delta)
+        return wrong, (scene["truth"].fk(wrong) - scene["truth"].fk(scene["poses"])).norm(dim=-1)
+
+    # the largest perturbation along ``delta`` that keeps every joint within 9 cm (root off by ~4 cm)
+    k = 0.1
+    while float(joint_error(k)[1].max()) > 0.09:
+        k *= 0.9
+    wrong, error = joint_error(k)
+    assert 0.07 < float(error.max()) < 0.10
+    fitted, report = fit_body(scene["stick"], scene["rig"], list(scene["masks"]), wrong, iterations=200)
+    _check_fit(human, fitted, report)
+    after = (scene["truth"].fk(report.poses) - scene["truth"].fk(scene["poses"])).norm(dim=-1)
+    assert float(after.mean()) < float(error.mean())
+
+
+def test_fit_lengths_recovers_longer_thighs(human, scene):
+    lengths = {"LeftLeg": 1.12, "RightLeg": 1.12, "LeftForeArm": 0.9, "RightForeArm": 0.9}
+    truth = human.with_body(scale=TRUE_SCALE, lengths=lengths)
+    poses = scene["poses"].clone()
+    up = human.dof_names.index("Hips_Yposition")
+    poses[:, up] = 0.0
+    poses[:, up] = 0.05 - truth.fk(poses)[..., 2].min(-1).values
+    joints = truth.fk(poses)
+    rig = scene["rig"]
+    masks = np.stack([render_masks(joints[f], truth.tree.bones, truth.radii, rig.cameras) for f in range(5)])
+    fitted, report = fit_body(scene["stick"], rig, masks, poses, iterations=200, fit_lengths=True)
+    factor = dict(zip(report.labels, report.lengths.tolist(), strict=True))
+    # absolute lengths (global scale x factor); the factors are weakly held at 1, the forearm most visibly
+    assert report.scale * factor["LeftLeg/RightLeg"] == pytest.approx(TRUE_SCALE * 1.12, rel=0.04)
+    assert report.scale * factor["LeftForeArm/RightForeArm"] == pytest.approx(TRUE_SCALE * 0.9, rel=0.08)
+    assert min(report.iou_after.values()) > 0.97
+    assert float((fitted.fk(report.poses) - joints).norm(dim=-1).mean()) < 0.02
+
+
+def test_cli_calibrate(scene, tmp_path, capsys):
+    seq = SequenceData(
+        cameras=scene["rig"],
+        masks=[list(m) for m in scene["masks"][:3]],
+        truth=scene["poses"][:3],
+        dof_names=scene["stick"].dof_names,
+    )
+    write_sequence(tmp_path / "seq", seq)
+    scene["stick"].save_urdf(tmp_path / "stick.urdf")
+    out = tmp_path / "fitted.urdf"
+    args = ["calibrate", str(tmp_path / "seq"), "--skeleton", str(tmp_path / "stick.urdf"), "--out", str(out)]
+    assert main([*args, "--frames", "2", "--iterations", "40", "--no-progress"]) == 0
+    printed = capsys.readouterr().out
+    assert "IoU before" in printed and "LeftLeg/RightLeg" in printed
+    fitted = Skeleton.from_urdf(out)
+    assert float(fitted.radii.mean()) > 2 * float(scene["stick"].radii.mean())
+    import cv2
+
+    overlay = cv2.imread(str(tmp_path / "fitted_overlay.png"))
+    assert overlay.shape == (120, 3 * 160, 3)
+
+    # bad input: one line on stderr, status 2
+    assert main([*args, "--init", str(tmp_path / "missing.csv"), "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "missing.csv" in err and len(err.splitlines()) == 1
