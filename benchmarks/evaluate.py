@@ -814,6 +814,33 @@ def tracker_setup(**options: Any) -> Callable[..., Tracker]:
 
 _BIDIR = {"likelihood": {"silhouette": 1.0, "dual_silhouette": 1.0}}
 
+
+def calibrated_setup(frames_used: int = 8, **options: Any) -> Callable[..., Tracker]:
+    """A setup that first fits the body to the sequence's first ``frames_used`` frames
+    (:func:`torchpf.calibrate.fit_body`, poses from ``truth.csv`` as ``python -m torchpf calibrate`` takes
+    them), then builds ``Tracker(fitted, cameras, n_particles=N, **options)``; the fit's time counts in the
+    setup's total time, not in the tracker's frame rate."""
+
+    def setup(seq_dir: Path, skeleton: Skeleton, *, n_particles: int = 500, **_) -> Tracker:
+        from torchpf.calibrate import fit_body
+        from torchpf.sequence import read_sequence
+
+        seq = read_sequence(seq_dir)
+        k = min(frames_used, len(seq.truth))
+        fitted, _ = fit_body(skeleton, seq.cameras, seq.masks[:k], seq.truth[:k].double(), frames_used=k)
+        return Tracker(
+            fitted,
+            seq.cameras,
+            n_particles=n_particles,
+            fps=_sequence_fps(seq_dir),
+            progress=False,
+            **options,
+        )
+
+    setup.__doc__ = f"fit_body on {frames_used} frames, then Tracker options {options}"
+    return setup
+
+
 #: Tracker configurations compared on the foreign renders, printed side by side ("before/after"). A setup
 #: is ``setup(seq_dir, skeleton, *, n_particles, seed) -> Tracker | TrackResult``: a Tracker is run on
 #: ``seq_dir`` (``tracker.track(seq_dir, seed=seed)``), a TrackResult is taken as the run (a setup that
@@ -827,6 +854,13 @@ FOREIGN_SETUPS: dict[str, Callable[..., Any]] = {
     "bidir_partitioned": tracker_setup(**_BIDIR, filter="partitioned"),
     "bidir_partitioned_auto": tracker_setup(**_BIDIR, filter="partitioned", temperature="auto"),
     "bidir_sir": tracker_setup(**_BIDIR, filter="sir"),
+    "bidir_partitioned_table5": tracker_setup(
+        **_BIDIR, filter="partitioned", dynamics_options={"stds": "table5"}
+    ),
+    "calibrated_bidir_partitioned": calibrated_setup(**_BIDIR, filter="partitioned"),
+    "calibrated_bidir_sir": calibrated_setup(**_BIDIR, filter="sir"),
+    "bidir_partitioned_cv": tracker_setup(**_BIDIR, filter="partitioned", dynamics="constant_velocity"),
+    "bidir_partitioned_damped": tracker_setup(**_BIDIR, filter="partitioned", dynamics="damped"),
     # ---- AFTER (issue 11): add the new configurations here, one entry each, e.g.
     # "calibrated": fit the body (torchpf.calibrate.fit_body on the first frames, pose from truth.csv
     #               frame 0), then track with the fitted skeleton;
@@ -964,8 +998,10 @@ def run_foreign(cfg: ForeignConfig, out: str | os.PathLike = "out/foreign", prog
                     made = FOREIGN_SETUPS[name](seq.path, skel, n_particles=cfg.particles, seed=cfg.seed + r)
                     track = made if isinstance(made, TrackResult) else made.track(seq.path, seed=cfg.seed + r)
                     totals.append(time.perf_counter() - t0)
+                    # a setup that fitted the body tracks with its own skeleton: its joints are the estimate
+                    body = made.skeleton if isinstance(made, Tracker) else skel
                     with torch.no_grad():
-                        estimates.append(skel.fk(track.angles)[:, joints])
+                        estimates.append(body.fk(track.angles)[:, joints])
                     seconds.append(track.seconds / K)
                     ess.append(float(track.ess.float().mean()))
                     if bar is not None:
