@@ -55,13 +55,14 @@ Foreign renders (issue 11)
 --------------------------
 ``--renderer foreign`` runs another protocol: every CMU clip rendered by :mod:`benchmarks.foreign` (a body
 the tracker's model has never seen; clean and noisy masks, 30 fps, 3 cameras, 160x120), written as a
-sequence directory and tracked by each named setup of :data:`FOREIGN_SETUPS` (``today``: the ``track``
-CLI's defaults at 500 evaluations per frame), printing MPJPE, RMSE, failure rates, ESS and time per clip and
-averaged, one row per setup ("before/after")::
+sequence directory and tracked by each named setup of :data:`FOREIGN_SETUPS` (``before``: the ``track``
+defaults before issue 11, pinned; ``defaults``: the ``track`` defaults now; 500 evaluations per frame),
+printing MPJPE, RMSE, failure rates, ESS and time per clip and averaged, one row per setup
+("before/after")::
 
     python -m benchmarks.evaluate --renderer foreign                     # all 11 clips (a few minutes)
     python -m benchmarks.evaluate --renderer foreign --clips 07_01 --presets clean --frames 20
-    python -m benchmarks.evaluate --renderer foreign --in-place --runs 3 --setups today
+    python -m benchmarks.evaluate --renderer foreign --in-place --runs 3 --setups before,defaults
 
 Outputs in ``--out`` (default ``out/evaluate``): ``table.md`` (printed too), ``results.csv`` (one row per
 sequence x filter x N x run, then one ``aggregate`` row per sequence x filter x N), ``frames.csv`` (mean
@@ -786,10 +787,29 @@ def _sequence_fps(seq_dir: Path) -> float | None:
     return None if times is None or len(times) < 2 else 1.0 / float(times[1] - times[0])
 
 
-def setup_today(seq_dir: Path, skeleton: Skeleton, *, n_particles: int = 500, **_) -> Tracker:
-    """Today's defaults: the tracker ``python -m torchpf track SEQ --skeleton S.urdf --particles N`` builds,
-    ``Tracker(skel, cameras, n_particles=N)`` with the sequence's frame rate (as the CLI passes it) and
-    nothing else (default likelihood, prior, filter; initial pose from ``truth.csv`` frame 0)."""
+def setup_before(seq_dir: Path, skeleton: Skeleton, *, n_particles: int = 500, **_) -> Tracker:
+    """The ``track`` defaults before issue 11, pinned: silhouette cue alone, APF (3 layers), the random walk
+    with Fontmarty's Table 5 stds mapped by joint names (:func:`priors.table5.table5_sigma`, exactly), the
+    converted skeleton's own capsules; initial pose from ``truth.csv`` frame 0."""
+    from torchpf.sequence import read_sequence
+
+    fps = _sequence_fps(seq_dir)
+    return Tracker(
+        skeleton,
+        read_sequence(seq_dir).cameras,
+        likelihood="silhouette",
+        filter="apf",
+        dynamics="random_walk",
+        dynamics_options={"stds": table5_sigma(skeleton, fps)},
+        n_particles=n_particles,
+        fps=fps,
+        progress=False,
+    )
+
+
+def setup_defaults(seq_dir: Path, skeleton: Skeleton, *, n_particles: int = 500, **_) -> Tracker:
+    """The ``track`` defaults as they are now: ``Tracker(skel, cameras, n_particles=N)`` with the
+    sequence's frame rate (as the CLI passes it) and nothing else."""
     from torchpf.sequence import read_sequence
 
     cameras = read_sequence(seq_dir).cameras
@@ -846,7 +866,8 @@ def calibrated_setup(frames_used: int = 8, **options: Any) -> Callable[..., Trac
 #: ``seq_dir`` (``tracker.track(seq_dir, seed=seed)``), a TrackResult is taken as the run (a setup that
 #: calibrates the body first, then tracks, returns one). Its wall time counts in ``total_seconds``.
 FOREIGN_SETUPS: dict[str, Callable[..., Any]] = {
-    "today": setup_today,
+    "before": setup_before,
+    "defaults": setup_defaults,
     # candidates for the new defaults: the bidirectional silhouette cue with each filter, fixed or
     # first-frame-calibrated likelihood temperature
     "bidir_apf": tracker_setup(**_BIDIR),
@@ -874,7 +895,7 @@ class ForeignConfig:
 
     clips: tuple[str, ...] = ()  # CMU clip stems; empty: every clip in INDEX.tsv
     presets: tuple[str, ...] = ("clean", "noisy")  # benchmarks.foreign.PRESETS
-    setups: tuple[str, ...] = ("today",)  # FOREIGN_SETUPS
+    setups: tuple[str, ...] = ("before", "defaults")  # FOREIGN_SETUPS
     frames: int = 60  # K per clip (the runs are shorter: ~34 frames at 30 fps)
     fps: float = 30.0
     particles: int = 500  # likelihood evaluations per frame

@@ -168,13 +168,14 @@ def test_foreign_evaluation_smoke(tmp_path):
         ]
     )
     cfg = ev.foreign_config_from_args(args)
-    assert cfg.setups == ("today",) and cfg.fps == 30.0 and cfg.particles == 30
+    assert cfg.setups == ("before", "defaults") and cfg.fps == 30.0 and cfg.particles == 30
     result = ev.run_foreign(cfg, tmp_path)
-    (row,) = result.rows
-    assert row["clip"] == "16_46" and row["frames"] == 3 and row["joints"] == 15
-    assert 0 <= row["frame_failure"] <= 1 and 0 < row["mpjpe"] < 1 and row["mean_ess"] >= 1
+    assert [row["setup"] for row in result.rows] == ["before", "defaults"]
+    for row in result.rows:
+        assert row["clip"] == "16_46" and row["frames"] == 3 and row["joints"] == 15
+        assert 0 <= row["frame_failure"] <= 1 and 0 < row["mpjpe"] < 1 and row["mean_ess"] >= 1
     paths = ev.write_foreign_outputs(result, tmp_path / "out")
     table = paths["table"].read_text()
-    assert "Foreign renders" in table and "| today |" in table and "**mean**" in table
+    assert "Foreign renders" in table and "| before |" in table and "**mean**" in table
     with pytest.raises(ValueError, match="unknown setup"):
         ev.ForeignConfig(setups=("tomorrow",))
