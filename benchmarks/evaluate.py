@@ -878,8 +878,13 @@ FOREIGN_SETUPS: dict[str, Callable[..., Any]] = {
     "bidir_partitioned_table5": tracker_setup(
         **_BIDIR, filter="partitioned", dynamics_options={"stds": "table5"}
     ),
+    "calibrated": calibrated_setup(),  # fit_body, then the defaults
     "calibrated_bidir_partitioned": calibrated_setup(**_BIDIR, filter="partitioned"),
     "calibrated_bidir_sir": calibrated_setup(**_BIDIR, filter="sir"),
+    "calibrated_bidir_apf": calibrated_setup(**_BIDIR, filter="apf"),
+    "calibrated_bidir_sir_table5": calibrated_setup(
+        **_BIDIR, filter="sir", dynamics_options={"stds": "table5"}
+    ),
     "bidir_partitioned_cv": tracker_setup(**_BIDIR, filter="partitioned", dynamics="constant_velocity"),
     "bidir_partitioned_damped": tracker_setup(**_BIDIR, filter="partitioned", dynamics="damped"),
     # ---- AFTER (issue 11): add the new configurations here, one entry each, e.g.

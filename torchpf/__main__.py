@@ -48,7 +48,7 @@ def _parser() -> argparse.ArgumentParser:
     tr.add_argument(
         "--likelihood",
         action="append",
-        help="likelihood term, repeatable; NAME or NAME=WEIGHT (default silhouette)",
+        help="likelihood term, repeatable; NAME or NAME=WEIGHT (default silhouette and dual_silhouette)",
     )
     tr.add_argument(
         "--temperature",

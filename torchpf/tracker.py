@@ -125,6 +125,9 @@ class Tracker(nn.Module):
         skeleton: :class:`~torchpf.Skeleton` (or a URDF path).
         cameras: a :class:`~torchpf.camera.CameraRig` / list of cameras (image likelihoods need them).
         likelihood: a module, a name, a list of names or ``{name: weight}`` (see :func:`make_likelihood`).
+            Default: the bidirectional silhouette cue, Fontmarty's silhouette (model inside the mask) times
+            the dual silhouette (mask covered by the model), which penalises a model thinner than the
+            silhouette or a limb folded into the torso; measured best on foreign renders (BENCHMARKS.md).
         likelihood_options: ``{name: {keyword: value}}`` for the named likelihoods.
         temperature: exponent ``beta`` on the log-likelihood
             (:class:`~torchpf.likelihoods.TemperedLikelihood`), or ``"auto"``: set per sequence on the first
@@ -140,7 +143,8 @@ class Tracker(nn.Module):
         init_spread: std of the initial particles around the initial pose: a float (rad and m alike) or a
             (D,) tensor.
         fps: frame rate (Hz) of the sequences to track; passed to a named prior's factory that takes ``fps``
-            (the Table 5 random-walk stds are per 5 Hz frame and rescale with ``sqrt(5 / fps)``).
+            (the default random walk's structural stds are a distance per frame, ``speed / fps``;
+            :mod:`priors.diffusion`).
         device, dtype: where and in which precision to run (observations are moved per frame).
         progress: tqdm progress bar.
     """
@@ -150,7 +154,7 @@ class Tracker(nn.Module):
         skeleton,
         cameras=None,
         *,
-        likelihood: Any = "silhouette",
+        likelihood: Any = ("silhouette", "dual_silhouette"),
         likelihood_options: Mapping[str, Mapping] | None = None,
         temperature: float | str = 1.0,
         dynamics: Any = "random_walk",
