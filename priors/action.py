@@ -66,8 +66,6 @@ import math
 import os
 import tempfile
 import warnings
-import zipfile
-import zlib
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -77,6 +75,7 @@ from torch import Tensor, nn
 
 from priors.motion import ConstantVelocity
 from torchpf.distributions import Dynamics, as_dynamics, flatten_batch, unflatten_batch, wrap_angle
+from torchpf.io import read_versioned_npz
 
 #: ``metadata["format"]`` of an action-model file.
 FORMAT = "torchpf-action-model"
@@ -461,26 +460,9 @@ class ActionModel(nn.Module):
         def bad(reason: str) -> ActionModelFormatError:
             return ActionModelFormatError(f"{path}: {reason}")
 
-        try:
-            with np.load(path, allow_pickle=False) as npz:
-                data = {key: npz[key] for key in npz.files}
-        except (zipfile.BadZipFile, zlib.error, ValueError, EOFError, OSError, KeyError) as e:
-            raise bad(f"not a readable action-model .npz file ({type(e).__name__}: {e})") from None
-        if not isinstance(data, dict) or "metadata" not in data:
-            raise bad("not an action-model file (no 'metadata' entry)")
-        try:
-            meta = json.loads(str(data["metadata"]))
-        except (ValueError, TypeError) as e:
-            raise bad(f"metadata is not valid JSON ({e})") from None
-        if not isinstance(meta, dict) or meta.get("format") != FORMAT:
-            raise bad(f"not an action-model file (metadata format is not {FORMAT!r})")
-        version = meta.get("version")
-        if not isinstance(version, int) or version < 1:
-            raise bad(f"bad format version {version!r}")
-        if version > FORMAT_VERSION:
-            raise bad(
-                f"format version {version} is newer than this torchpf reads ({FORMAT_VERSION}); upgrade"
-            )
+        data, meta, version = read_versioned_npz(
+            path, FORMAT, FORMAT_VERSION, "action-model", ActionModelFormatError
+        )
         absent = [k for k in (*_REQUIRED, "alpha") if k not in data]
         absent += [k for k in ("dof_names", "posture_dofs", "fps") if k not in meta]
         absent += ["revolute"] if version >= 2 and "revolute" not in data else []

@@ -38,15 +38,13 @@ import logging
 import math
 import os
 import warnings
-import zipfile
-import zlib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 
-from torchpf.io import write_atomic
+from torchpf.io import read_versioned_npz, write_atomic
 from torchpf.kinematics import body_partition
 
 _log = logging.getLogger("priors")
@@ -447,26 +445,9 @@ class LearnedDynamics:
         def bad(reason: str) -> LearnedDynamicsFormatError:
             return LearnedDynamicsFormatError(f"{path}: {reason}")
 
-        try:
-            with np.load(path, allow_pickle=False) as npz:
-                data = {key: npz[key] for key in npz.files}
-        except (zipfile.BadZipFile, zlib.error, ValueError, EOFError, OSError, KeyError) as e:
-            raise bad(f"not a readable .npz file ({type(e).__name__}: {e})") from None
-        if "metadata" not in data:
-            raise bad("not a learned-dynamics file (no 'metadata' entry)")
-        try:
-            meta = json.loads(str(data["metadata"]))
-        except (ValueError, TypeError) as e:
-            raise bad(f"metadata is not valid JSON ({e})") from None
-        if not isinstance(meta, dict) or meta.get("format") != FORMAT:
-            raise bad(f"not a learned-dynamics file (metadata format is not {FORMAT!r})")
-        version = meta.get("version")
-        if not isinstance(version, int) or version < 1:
-            raise bad(f"bad format version {version!r}")
-        if version > FORMAT_VERSION:
-            raise bad(
-                f"format version {version} is newer than this torchpf reads ({FORMAT_VERSION}); upgrade"
-            )
+        data, meta, _ = read_versioned_npz(
+            path, FORMAT, FORMAT_VERSION, "learned-dynamics", LearnedDynamicsFormatError
+        )
         absent = [k for k in ("step_std", "cv_std", "revolute") if k not in data]
         absent += [k for k in ("dof_names", "fps", "alpha") if k not in meta]
         if absent:

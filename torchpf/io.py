@@ -306,3 +306,49 @@ def parse_float_table(
                 ) from None
         raise  # numpy rejected something Python accepts: let its message through
     return flat.reshape(-1, n_cols)
+
+
+def read_versioned_npz(
+    path: str | os.PathLike,
+    fmt: str,
+    max_version: int,
+    what: str,
+    error: type[Exception] = ValueError,
+) -> tuple[dict[str, np.ndarray], dict, int]:
+    """Read a library ``.npz`` file: its arrays, its JSON ``metadata`` entry and format version.
+
+    ``fmt`` is the format name the metadata must carry (``"metadata": {"format": fmt, "version": v, ...}``),
+    ``max_version`` the newest version this code reads, ``what`` the kind of file for messages (``"action
+    model"``). Every failure raises ``error`` with a message that starts with the path: not a readable zip,
+    no or invalid metadata, another format, a version that is not a positive int or newer than
+    ``max_version``. Nothing is unpickled (``allow_pickle=False``).
+    """
+    import json
+    import zipfile
+    import zlib
+
+    path = os.fspath(path)
+
+    def bad(reason: str) -> Exception:
+        return error(f"{path}: {reason}")
+
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            data = {key: npz[key] for key in npz.files}
+    except (zipfile.BadZipFile, zlib.error, ValueError, EOFError, OSError, KeyError) as e:
+        raise bad(f"not a readable {what} .npz file ({type(e).__name__}: {e})") from None
+    article = "an" if what[:1].lower() in "aeiou" else "a"
+    if "metadata" not in data:
+        raise bad(f"not {article} {what} file (no 'metadata' entry)")
+    try:
+        meta = json.loads(str(data["metadata"]))
+    except (ValueError, TypeError) as e:
+        raise bad(f"metadata is not valid JSON ({e})") from None
+    if not isinstance(meta, dict) or meta.get("format") != fmt:
+        raise bad(f"not {article} {what} file (metadata format is not {fmt!r})")
+    version = meta.get("version")
+    if not isinstance(version, int) or isinstance(version, bool) or version < 1:
+        raise bad(f"bad format version {version!r}")
+    if version > max_version:
+        raise bad(f"format version {version} is newer than this torchpf reads ({max_version}); upgrade")
+    return data, meta, version
