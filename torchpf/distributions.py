@@ -190,10 +190,12 @@ class _DuckDynamics(Dynamics):
         try:
             return super().__getattr__(name)
         except AttributeError:
-            # attributes of the adapted model (``std``, ``sigma``, ...) read through
-            return getattr(
-                super().__getattr__("inner") if "inner" in self._modules else self.__dict__["inner"], name
-            )
+            # attributes of the adapted model (``std``, ``sigma``, ...) read through; while the module is
+            # being built or unpickled there is no inner model yet, and the lookup must fail as usual
+            inner = self.__dict__.get("inner", self.__dict__.get("_modules", {}).get("inner"))
+            if inner is None:
+                raise
+            return getattr(inner, name)
 
 
 def as_dynamics(model) -> Dynamics:

@@ -1,5 +1,6 @@
 """torchpf.distributions: Gaussian density, angle wrap, generators, batch flattening, Dynamics base."""
 
+import copy
 import math
 
 import pytest
@@ -95,6 +96,7 @@ def test_duck_typed_dynamics_are_adapted_once_and_match_the_base_class():
     duck, base = as_dynamics(_DuckWalk(0.1)), GaussianRandomWalk(0.1)
     assert isinstance(duck, Dynamics) and as_dynamics(base) is base and duck.std == 0.1
     assert duck.init_extras(x) == {} and not duck.has_noise_map() and base.has_noise_map()
+    assert copy.deepcopy(duck).std == 0.1 and not hasattr(duck, "no_such_attribute")
     a = duck.sample(x, torch.Generator().manual_seed(0), extras={"ignored": x})
     b = base.sample(x, torch.Generator().manual_seed(0))
     torch.testing.assert_close(a, b)
