@@ -787,33 +787,12 @@ def _sequence_fps(seq_dir: Path) -> float | None:
     return None if times is None or len(times) < 2 else 1.0 / float(times[1] - times[0])
 
 
-def setup_before(seq_dir: Path, skeleton: Skeleton, *, n_particles: int = 500, **_) -> Tracker:
-    """The ``track`` defaults before issue 11, pinned: silhouette cue alone, APF (3 layers), the random walk
-    with Fontmarty's Table 5 stds mapped by joint names (:func:`priors.table5.table5_sigma`, exactly), the
-    converted skeleton's own capsules; initial pose from ``truth.csv`` frame 0."""
-    from torchpf.sequence import read_sequence
-
-    fps = _sequence_fps(seq_dir)
+def _tracker(seq_dir: Path, skeleton: Skeleton, cameras, n_particles: int, **options: Any) -> Tracker:
+    """``Tracker(skeleton, cameras, n_particles=N, fps=<the sequence's>, **options)``: what ``python -m
+    torchpf track SEQ --particles N`` builds with those options (the CLI passes the sequence's rate)."""
     return Tracker(
-        skeleton,
-        read_sequence(seq_dir).cameras,
-        likelihood="silhouette",
-        filter="apf",
-        dynamics="random_walk",
-        dynamics_options={"stds": table5_sigma(skeleton, fps)},
-        n_particles=n_particles,
-        fps=fps,
-        progress=False,
+        skeleton, cameras, n_particles=n_particles, fps=_sequence_fps(seq_dir), progress=False, **options
     )
-
-
-def setup_defaults(seq_dir: Path, skeleton: Skeleton, *, n_particles: int = 500, **_) -> Tracker:
-    """The ``track`` defaults as they are now: ``Tracker(skel, cameras, n_particles=N)`` with the
-    sequence's frame rate (as the CLI passes it) and nothing else."""
-    from torchpf.sequence import read_sequence
-
-    cameras = read_sequence(seq_dir).cameras
-    return Tracker(skeleton, cameras, n_particles=n_particles, fps=_sequence_fps(seq_dir), progress=False)
 
 
 def tracker_setup(**options: Any) -> Callable[..., Tracker]:
@@ -823,13 +802,24 @@ def tracker_setup(**options: Any) -> Callable[..., Tracker]:
     def setup(seq_dir: Path, skeleton: Skeleton, *, n_particles: int = 500, **_) -> Tracker:
         from torchpf.sequence import read_sequence
 
-        cameras = read_sequence(seq_dir).cameras
-        return Tracker(
-            skeleton, cameras, n_particles=n_particles, fps=_sequence_fps(seq_dir), progress=False, **options
-        )
+        return _tracker(seq_dir, skeleton, read_sequence(seq_dir).cameras, n_particles, **options)
 
     setup.__doc__ = f"Tracker options {options}"
     return setup
+
+
+def setup_before(seq_dir: Path, skeleton: Skeleton, *, n_particles: int = 500, **_) -> Tracker:
+    """The ``track`` defaults before issue 11, pinned: silhouette cue alone, APF (3 layers), the random walk
+    with Fontmarty's Table 5 stds mapped by joint names (:func:`priors.table5.table5_sigma`, exactly), the
+    converted skeleton's own capsules; initial pose from ``truth.csv`` frame 0."""
+    stds = table5_sigma(skeleton, _sequence_fps(seq_dir))
+    return tracker_setup(
+        likelihood="silhouette", filter="apf", dynamics="random_walk", dynamics_options={"stds": stds}
+    )(seq_dir, skeleton, n_particles=n_particles)
+
+
+#: The ``track`` defaults as they are now: ``Tracker(skel, cameras, n_particles=N)`` and nothing else.
+setup_defaults = tracker_setup()
 
 
 _BIDIR = {"likelihood": {"silhouette": 1.0, "dual_silhouette": 1.0}}
@@ -848,14 +838,7 @@ def calibrated_setup(frames_used: int = 8, **options: Any) -> Callable[..., Trac
         seq = read_sequence(seq_dir)
         k = min(frames_used, len(seq.truth))
         fitted, _ = fit_body(skeleton, seq.cameras, seq.masks[:k], seq.truth[:k].double(), frames_used=k)
-        return Tracker(
-            fitted,
-            seq.cameras,
-            n_particles=n_particles,
-            fps=_sequence_fps(seq_dir),
-            progress=False,
-            **options,
-        )
+        return _tracker(seq_dir, fitted, seq.cameras, n_particles, **options)
 
     setup.__doc__ = f"fit_body on {frames_used} frames, then Tracker options {options}"
     return setup
