@@ -90,6 +90,12 @@ class Registry(Mapping[str, T], Generic[T]):
                 return default
             raise ValueError(f"unknown {self.kind} {name!r}; choose from {self.names()}") from None
 
+    def canonical(self, name: str) -> str:
+        """The registered name that ``name`` stands for (case-insensitive, aliases followed); an unknown name
+        raises the ``ValueError`` of :meth:`get`."""
+        self.get(name)
+        return self._key(name)
+
     def resolve(self, spec: str | T) -> T:
         """``spec`` itself when it is not a string, else the entry it names (see :meth:`get`)."""
         return self.get(spec) if isinstance(spec, str) else spec

@@ -174,8 +174,7 @@ class Tracker(nn.Module):
             from torchpf.skeleton import Skeleton
 
             skeleton = Skeleton.from_urdf(skeleton)
-        if filter not in FILTERS:
-            raise ValueError(f"unknown filter {filter!r}; choose from {FILTERS.names(aliases=True)}")
+        filter_name = FILTERS.canonical(filter)  # "condensation" -> "sir"; unknown names raise here
         if n_particles < 1:
             raise ValueError(f"n_particles must be >= 1, got {n_particles}")
         self.skeleton = skeleton
@@ -198,7 +197,7 @@ class Tracker(nn.Module):
             dynamics = make_dynamics(dynamics, skeleton, **options)
         self.dynamics = dynamics
         self.proposal = proposal
-        self.filter_name = "sir" if filter.lower() == "condensation" else filter.lower()
+        self.filter_name = filter_name
         self.n_particles = int(n_particles)
         self.filter_options = dict(filter_options or {})
         self.init_spread = init_spread

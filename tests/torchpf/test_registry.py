@@ -16,6 +16,9 @@ def test_register_lookup_aliases_and_errors():
     assert "circle" in reg and "square" not in reg and 3 not in reg
     assert reg.names() == ["disc"] and reg.names(aliases=True) == ["circle", "disc"] and len(reg) == 1
     assert reg.resolve(len) is len and reg.resolve("disc") is disc
+    assert reg.canonical("Circle") == "disc" and reg.canonical("DISC") == "disc"
+    with pytest.raises(ValueError, match="unknown shape"):
+        reg.canonical("square")
     with pytest.raises(ValueError, match=r"unknown shape 'square'; choose from \['disc'\]"):
         reg.get("square")
     with pytest.raises(ValueError, match="already registered"):
