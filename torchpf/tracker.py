@@ -182,11 +182,12 @@ class Tracker(nn.Module):
         self._likelihood_spec = likelihood
         self._likelihood_options = dict(likelihood_options or {})
         self.likelihood = make_likelihood(skeleton, cameras, likelihood, likelihood_options)
-        if temperature == "auto" or (not isinstance(temperature, str) and float(temperature) != 1.0):
-            beta = 1.0 if temperature == "auto" else float(temperature)
-            self.likelihood = TemperedLikelihood(self.likelihood, beta)
-        elif isinstance(temperature, str):
+        if isinstance(temperature, str) and temperature != "auto":
             raise ValueError(f"temperature must be a number or 'auto', got {temperature!r}")
+        if temperature == "auto" or float(temperature) != 1.0:  # "auto" starts at 1, set per sequence
+            self.likelihood = TemperedLikelihood(
+                self.likelihood, 1.0 if temperature == "auto" else temperature
+            )
         self.temperature = temperature
         if isinstance(dynamics, str):
             options = dict(dynamics_options or {})

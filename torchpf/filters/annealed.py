@@ -187,7 +187,7 @@ class AnnealedParticleFilter(ParticleFilter):
         )
 
     def budget_options(self) -> dict[str, Any]:
-        return {"betas": "adaptive", "n_layers": self.n_layers}
+        return {"betas": "adaptive" if self.adaptive else self.betas, "n_layers": self.n_layers}
 
     def _beta(self, layer: int, base: Tensor, energy: Tensor, lower: Tensor) -> Tensor:
         if not self.adaptive:
