@@ -454,8 +454,6 @@ class ActionModel(nn.Module):
             ValueError: ``dof_names`` differs from the model's DOF names (the message lists the differences).
         """
         path = os.fspath(path)
-        if not os.path.isfile(path):
-            raise FileNotFoundError(f"action model file not found: {path}")
 
         def bad(reason: str) -> ActionModelFormatError:
             return ActionModelFormatError(f"{path}: {reason}")

@@ -439,8 +439,6 @@ class LearnedDynamics:
             ValueError: ``dof_names`` differs from the file's (names the file and the differences).
         """
         path = os.fspath(path)
-        if not os.path.isfile(path):
-            raise FileNotFoundError(f"learned dynamics file not found: {path}")
 
         def bad(reason: str) -> LearnedDynamicsFormatError:
             return LearnedDynamicsFormatError(f"{path}: {reason}")

@@ -321,13 +321,16 @@ def read_versioned_npz(
     ``max_version`` the newest version this code reads, ``what`` the kind of file for messages (``"action
     model"``). Every failure raises ``error`` with a message that starts with the path: not a readable zip,
     no or invalid metadata, another format, a version that is not a positive int or newer than
-    ``max_version``. Nothing is unpickled (``allow_pickle=False``).
+    ``max_version``; a missing file raises ``FileNotFoundError`` naming it. Nothing is unpickled
+    (``allow_pickle=False``).
     """
     import json
     import zipfile
     import zlib
 
     path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"{what.replace('-', ' ')} file not found: {path}")
 
     def bad(reason: str) -> Exception:
         return error(f"{path}: {reason}")

@@ -39,6 +39,11 @@ def test_bad_metadata_names_the_file(tmp_path, meta, message):
         read_versioned_npz(f, "thing", 2, "action-model", FormatError)
 
 
+def test_missing_file_names_it(tmp_path):
+    with pytest.raises(FileNotFoundError, match=r"action model file not found: .*nowhere\.npz"):
+        read_versioned_npz(tmp_path / "nowhere.npz", "thing", 1, "action-model", FormatError)
+
+
 def test_not_a_zip_and_no_metadata(tmp_path):
     junk = tmp_path / "junk.npz"
     junk.write_bytes(b"PK\x03\x04 not really a zip")
