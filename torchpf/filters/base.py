@@ -338,8 +338,7 @@ class ParticleFilter(nn.Module):
         # the estimates stay finite; info["nonfinite"] counts them.
         bad = ~torch.isfinite(x).all(-1)
         x = torch.where(bad.unsqueeze(-1), x_prev, x)
-        dropped = normalise(torch.where(bad & ~failed.unsqueeze(-1), -math.inf, log_w))
-        dropped = torch.where(torch.isfinite(dropped).any(-1, keepdim=True), dropped, -math.log(x.shape[-2]))
+        dropped, _, _ = reweight(log_w, torch.where(bad & ~failed.unsqueeze(-1), -math.inf, 0.0))
         log_w = torch.where(bad.any(-1, keepdim=True), dropped, log_w)  # rows without one: untouched
         info = {**info, "nonfinite": bad.sum(-1) + info.get("nonfinite", 0)}  # plus earlier stages' drops
         return ParticleState(
