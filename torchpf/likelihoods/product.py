@@ -15,7 +15,7 @@ from collections.abc import Iterator, Mapping, Sequence
 import torch
 from torch import nn
 
-from torchpf.filters.weights import survival_fraction, temper
+from torchpf.filters.weights import ess, survival_fraction, temper
 from torchpf.likelihoods.base import LIKELIHOODS, Body, Likelihood
 
 __all__ = ["ProductLikelihood", "TemperedLikelihood", "calibrate_temperature", "make_likelihood"]
@@ -128,7 +128,7 @@ def calibrate_temperature(
             enough = survival_fraction(temper(mid.exp(), energy)) >= survival_rate
             lo, hi = torch.where(enough, mid, lo), torch.where(enough, hi, mid)
         beta = (0.5 * (lo + hi)).exp()
-        dead = ~torch.isfinite(torch.logsumexp(torch.nan_to_num(energy, nan=-math.inf, neginf=-math.inf), -1))
+        dead = ess(energy) == 0  # every particle impossible: nothing to calibrate on
         return torch.where(dead, torch.ones_like(beta), beta)
 
 
