@@ -48,20 +48,12 @@ import torch
 
 from torchpf.camera import CameraRig
 from torchpf.geometry import project_capsules, sample_in_capsules
-from torchpf.kinematics.tree import body_partition
+from torchpf.kinematics.tree import body_partition, children_of
 
 __all__ = ["CalibrationReport", "bone_groups", "fit_body", "overlay_image"]
 
 
 # ---------------------------------------------------------------------------------------------- groups
-def _children(parents: Sequence[int]) -> dict[int, list[int]]:
-    kids: dict[int, list[int]] = {j: [] for j in range(len(parents))}
-    for j, p in enumerate(parents):
-        if p >= 0:
-            kids[p].append(j)
-    return kids
-
-
 def _shape(j: int, kids) -> str:
     """Canonical string of the subtree's topology (children sorted), the same for a limb and its mirror."""
     return "(" + "".join(sorted(_shape(c, kids) for c in kids[j])) + ")"
@@ -105,7 +97,7 @@ def bone_groups(skeleton, *, tol: float = 0.1) -> list[list[int]]:
     """
     tree = skeleton.tree
     parents = tree.parents.tolist()
-    kids = _children(parents)
+    kids = children_of(parents)
     rest = skeleton.fk(torch.zeros(len(skeleton.dof_names), dtype=torch.float64))
     bone_of = {int(c): k for k, (_, c) in enumerate(tree.bones.tolist())}
     limbs = body_partition(tree, per_limb=True, joints=True)[1:]

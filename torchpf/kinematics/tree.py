@@ -269,6 +269,16 @@ class KinematicTree(nn.Module):
         )
 
 
+def children_of(parents: Sequence[int]) -> dict[int, list[int]]:
+    """``{j: [children of j]}`` for every joint of a parent list (``-1`` for a root), children in index
+    order."""
+    children: dict[int, list[int]] = {j: [] for j in range(len(parents))}
+    for j, p in enumerate(parents):
+        if p >= 0:
+            children[p].append(j)
+    return children
+
+
 def partition_labels(parents: Sequence[int], rest: Tensor) -> Tensor:
     """``joint_part`` (J,) of :class:`KinematicTree`: 0 torso, ``k`` the ``k``-th limb, -1 neither.
 
@@ -279,10 +289,7 @@ def partition_labels(parents: Sequence[int], rest: Tensor) -> Tensor:
     """
     parents = list(parents)
     J = len(parents)
-    children: dict[int, list[int]] = {j: [] for j in range(J)}
-    for j, p in enumerate(parents):
-        if p >= 0:
-            children[p].append(j)
+    children = children_of(parents)
 
     def subtree(j):
         out = [j]
