@@ -135,6 +135,18 @@ class Silhouettes:
             self._cache["area"] = self.masks.sum((-1, -2))
         return self._cache["area"]
 
+    def outside_distance(self) -> torch.Tensor:
+        """(V, H, W) distance (pixels) from each pixel centre to the foreground (mask > 0.5), 0 inside; its
+        zero level is the foreground's pixel edge (``cv2.distanceTransform`` minus half a pixel). A
+        bilinear look-up in it grows linearly away from the silhouette, so a model point outside the mask
+        has a gradient however far it lies (the distance cue of :mod:`torchpf.refine`)."""
+        if "outside" not in self._cache:
+            hard = (self.masks > 0.5).cpu().numpy()
+            self._cache["outside"] = torch.stack(
+                [torch.from_numpy(distance_image(m)).sub(0.5).clamp_min(0.0) for m in hard]
+            ).to(self.masks.device)
+        return self._cache["outside"]
+
     def foreground_samples(self, n: int) -> tuple[torch.Tensor, torch.Tensor]:
         """``n`` fixed points on each camera's foreground (Fontmarty's N_s points of the dual cue, §3.2.2).
 

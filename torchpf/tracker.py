@@ -257,7 +257,11 @@ class Tracker(nn.Module):
             stages = self._stage_likelihoods(groups) if partial else [self.likelihood] * len(groups)
             n = kind.for_budget(self.n_particles, groups=groups, **opts)
             return kind.build(self.dynamics, stages, groups, n_particles=n, **opts)
-        if self.filter_name == "apf" and "diffusion_std" not in opts:
+        if getattr(kind.cls, "needs_refiner", False) and "refiner" not in opts:
+            from torchpf.refine import Refiner
+
+            opts["refiner"] = Refiner(self.skeleton, self.cameras, **dict(opts.pop("refine_options", {})))
+        if self.filter_name in ("apf", "hybrid") and "diffusion_std" not in opts:
             if getattr(self.dynamics, "std", None) is None:
                 opts["diffusion_std"] = _diffusion_std(self.dynamics)
         n = kind.for_budget(self.n_particles, **opts)

@@ -18,6 +18,8 @@ class                           what it does                                   s
 ``PartitionedParticleFilter``   stage-wise diffusion/weighting of DOF groups   Fontmarty Table 2
                                 (``sampling="qrs"``: PARTITIONED QRS)
 ``MCMCParticleFilter``          SIR + hybrid Monte Carlo rejuvenation moves    Brubaker Alg. 3-4, eq. 21-22
+``HybridParticleFilter``        APF layers, then gradient refinement of the    Gall et al. IJCV 2010
+                                best particles (:mod:`torchpf.refine`)
 ==============================  ============================================  ============================
 
 Conventions: log-weights everywhere, handled only by :mod:`torchpf.filters.weights`; randomness only through
@@ -34,6 +36,7 @@ Example::
 
 from torchpf.filters.annealed import AnnealedParticleFilter, anneal_beta
 from torchpf.filters.base import ParticleFilter
+from torchpf.filters.hybrid import HybridParticleFilter
 from torchpf.filters.mcmc import MCMCParticleFilter, hmc_move
 from torchpf.filters.partitioned import PartitionedParticleFilter
 from torchpf.filters.protocols import Dynamics, Likelihood, Proposal
@@ -44,6 +47,7 @@ from torchpf.filters.weights import ess, normalise, reweight, temper
 __all__ = [
     "AnnealedParticleFilter",
     "Dynamics",
+    "HybridParticleFilter",
     "Likelihood",
     "MCMCParticleFilter",
     "ParticleFilter",

@@ -198,6 +198,13 @@ class AnnealedParticleFilter(ParticleFilter):
 
     def step(self, state: ParticleState, obs: Any, generator: torch.Generator | None = None) -> ParticleState:
         """One APF frame; ``info`` adds ``"betas" (..., L)`` to the SIR diagnostics."""
+        *frame, info = self._anneal(state, obs, generator)
+        return self._end_frame(*frame, **info)
+
+    def _anneal(self, state: ParticleState, obs: Any, generator: torch.Generator | None) -> tuple:
+        """The layers of one frame: the positional arguments of :meth:`_end_frame` (the frame's particles,
+        weights, evidence increment, failure flags, and each particle's frame-start parent and its extras)
+        followed by its info keywords (a dict), for subclasses that add a move before the frame ends."""
         state, ancestors, resampled = self._maybe_resample(state, generator)
         x_prev, extras_prev = state.particles, state.extras
         x, log_corr = self._propose(state, ancestors, obs, generator)
@@ -229,6 +236,4 @@ class AnnealedParticleFilter(ParticleFilter):
             failed = failed | failed_l
             betas.append(beta)
         failed = failed | failed_ev
-        return self._end_frame(
-            state, x, log_w, inc, failed, resampled, x_prev, extras_prev, betas=torch.stack(betas, -1)
-        )
+        return state, x, log_w, inc, failed, resampled, x_prev, extras_prev, {"betas": torch.stack(betas, -1)}

@@ -37,7 +37,7 @@ from torchpf.filters.state import ParticleState, Track, gather_particles
 from torchpf.filters.weights import normalise, reweight
 from torchpf.resampling import RESAMPLERS
 
-_STANDARD_INFO = ("failed", "resampled", "log_evidence_increment", "ess")
+_STANDARD_INFO = ("failed", "resampled", "log_evidence_increment", "ess", "estimate")
 
 
 class ParticleFilter(nn.Module):
@@ -215,7 +215,8 @@ class ParticleFilter(nn.Module):
             for obs in bar:
                 state = self.step(state, obs, generator)
                 info = state.info
-                means.append(state.mean())
+                # a filter whose estimate is not the weighted mean (a refined MAP) reports it in info
+                means.append(info["estimate"] if "estimate" in info else state.mean())
                 maps.append(state.map())
                 ess.append(info["ess"] if "ess" in info else state.ess())
                 incs.append(info["log_evidence_increment"])

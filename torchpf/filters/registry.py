@@ -9,6 +9,7 @@ name                   class                           fixed keywords
 ``partitioned_qrs``    ``PartitionedParticleFilter``   ``sampling="qrs"``
 ``apf``                ``AnnealedParticleFilter``      (Brubaker Alg. 2; Fontmarty Table 3)
 ``mcmc``               ``MCMCParticleFilter``          (Brubaker Alg. 3-4)
+``hybrid``             ``HybridParticleFilter``        (APF + gradient refinement, Gall et al. 2010)
 =====================  ==============================  =================================================
 
 Each entry is a :class:`FilterKind`; :meth:`FilterKind.for_budget` is the equal-budget rule of Fontmarty
@@ -29,6 +30,7 @@ from typing import Any
 
 from torchpf.filters.annealed import AnnealedParticleFilter
 from torchpf.filters.base import ParticleFilter
+from torchpf.filters.hybrid import HybridParticleFilter
 from torchpf.filters.mcmc import MCMCParticleFilter
 from torchpf.filters.partitioned import PartitionedParticleFilter
 from torchpf.registry import Registry
@@ -69,3 +71,4 @@ FILTERS.register("partitioned", FilterKind(PartitionedParticleFilter, {"sampling
 FILTERS.register("partitioned_qrs", FilterKind(PartitionedParticleFilter, {"sampling": "qrs"}))
 FILTERS.register("apf", FilterKind(AnnealedParticleFilter))
 FILTERS.register("mcmc", FilterKind(MCMCParticleFilter))
+FILTERS.register("hybrid", FilterKind(HybridParticleFilter))

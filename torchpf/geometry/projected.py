@@ -36,6 +36,7 @@ __all__ = [
     "Capsules2D",
     "capsule_coverage",
     "capsule_masks",
+    "distance_to_capsules",
     "outline_points",
     "project_capsules",
     "sample_in_capsules",
@@ -111,10 +112,36 @@ def _uneven_capsule_sdf(p, pa, pb, ra, rb):
     d_a = (h * nq).sqrt() - ra
     d_b = (h * (nq + 1 - 2 * qy)).clamp_min(0).sqrt() - rb
     d = torch.where(k < 0, d_a, torch.where(k > cx, d_b, m - ra))
-    # One disc inside the other: the hull is the larger disc.
+    # One disc inside the other (or a zero-length axis: a bone seen end-on): the hull is the larger disc.
+    # Distances straight from the centres, since the normalised coordinates above divide by |e|^2.
     nested = cx2 <= 1e-9
-    d_nested = torch.minimum(d_a, d_b)
+    d_nested = torch.minimum(
+        (p * p).sum(-1).clamp_min(1e-12).sqrt() - ra, ((p - e) ** 2).sum(-1).clamp_min(1e-12).sqrt() - rb
+    )
     return torch.where(nested, d_nested, d)
+
+
+def distance_to_capsules(points: torch.Tensor, caps: Capsules2D) -> torch.Tensor:
+    """Distance (pixels) from image points to the union of projected capsules, 0 inside.
+
+    ``min_c max(0, sdf_c(p))`` with the exact distance to each tapered capsule (the hull of its end discs);
+    invalid capsules (behind a camera) are ignored, and a point with no valid capsule gets ``inf``. The
+    gradient in the capsule parameters is that of the nearest capsule's outline: non-zero however far the
+    point lies from the model, which is what a local optimiser needs (:mod:`torchpf.refine`).
+
+    Args:
+        points: (P, 2) points shared by every pose, or (..., P, 2) per pose.
+        caps: :class:`Capsules2D` (..., C).
+
+    Returns:
+        (..., P) distances.
+    """
+    pts = points.unsqueeze(-3)  # (..., 1, P, 2) against (..., C, 1, 2)
+    sdf = _uneven_capsule_sdf(
+        pts, caps.pa.unsqueeze(-2), caps.pb.unsqueeze(-2), caps.ra.unsqueeze(-1), caps.rb.unsqueeze(-1)
+    )
+    sdf = torch.where(caps.valid.unsqueeze(-1), sdf, torch.full_like(sdf, math.inf))
+    return sdf.amin(-2).clamp_min(0.0)
 
 
 def capsule_masks(

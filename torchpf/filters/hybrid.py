@@ -1,0 +1,160 @@
+"""Hybrid filter: a stochastic search (the annealed particle filter) followed by gradient refinement of its
+best hypotheses, Gall, Rosenhahn, Brox & Seidel (IJCV 2010), "Optimization and filtering for human motion
+capture - a multi-layer framework" (global stochastic optimisation, then local optimisation).
+
+Each frame runs the ``L`` APF layers (:class:`~torchpf.filters.AnnealedParticleFilter`, Brubaker Alg. 2),
+then takes the ``K`` particles of highest weight and refines them by projected Adam on a differentiable cue
+(:class:`~torchpf.refine.Refiner`; default the two-sided distance-transform silhouette cue). How the refined
+poses re-enter (``refine_mode``):
+
+* ``"particles"`` (default): each refined pose ``x' = T(x)`` replaces its particle, and its weight is moved
+  by the ratio of the filtering target ``pi(x) = p(z_t | x) p(x | x_{t-1})`` at the two points::
+
+      log w' = log w + log p(z_t | x') - log p(z_t | x) + log p(x' | x_{t-1}) - log p(x | x_{t-1})
+
+  This is the importance weight of a deterministic move that ignores the Jacobian ``|det dT/dx|`` of the
+  optimiser's map (unknown; a contraction towards a mode has ``|det| < 1``, so the weight is an
+  approximation that favours refined poses; Gall et al. likewise treat the optimised poses as the
+  particle set). The refined particles carry the next frame's search, which is what lets the local
+  optimisation correct the drift of the stochastic search.
+* ``"estimate"``: the particle set is left as the APF made it and the frame's estimate is the best particle
+  refined (``info["estimate"]``), a pure post-processing of the APF's MAP: exact for the filter, but the
+  next frame starts from the unrefined particles.
+
+Equal budget (:mod:`torchpf.filters.registry`): per frame ``L N`` likelihood evaluations for the layers plus
+:meth:`~torchpf.refine.Refiner.evaluations` for the ``K`` refinements (``steps`` gradient steps at
+``Refiner.cost_per_step`` evaluations each, plus one look) plus, in ``"particles"`` mode, ``2 K`` for the
+weight ratio; :meth:`HybridParticleFilter.for_budget` gives the layers what the refinement leaves.
+
+Example::
+
+    from torchpf.refine import Refiner
+    hybrid = HybridParticleFilter(dynamics, likelihood, refiner=Refiner(skel, cameras), n_particles=100)
+    track = hybrid.run(frames, x0, generator=0)      # track.stats["refine_gain"]: (T,) nats gained by refining
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from torchpf.filters.annealed import AnnealedParticleFilter
+from torchpf.filters.state import ParticleState, gather_particles
+from torchpf.filters.weights import normalise
+
+__all__ = ["HybridParticleFilter"]
+
+_MODES = ("particles", "estimate")
+
+
+class HybridParticleFilter(AnnealedParticleFilter):
+    """APF layers, then gradient refinement of the ``n_refine`` best particles (module docstring).
+
+    Args:
+        dynamics, likelihood, proposal: as :class:`~torchpf.filters.AnnealedParticleFilter`.
+        refiner: a :class:`~torchpf.refine.Refiner` (``(x (..., K, D), obs) -> RefineResult``).
+        n_refine: ``K``, particles refined per frame and sequence.
+        refine_mode: ``"particles"`` or ``"estimate"``.
+        **options: the APF's keywords (``n_particles`` per layer, ``betas``, ``alphas``, ...).
+
+    ``info`` adds ``refine_gain (...)``: the refinement's decrease of the refiner's objective (nats of its
+    cue) for the best particle, averaged over the ``K``.
+    """
+
+    needs_refiner = True
+
+    def __init__(
+        self,
+        dynamics: Any,
+        likelihood: Any,
+        proposal: Any = None,
+        *,
+        refiner: Any = None,
+        n_refine: int = 4,
+        refine_mode: str = "particles",
+        **options: Any,
+    ):
+        super().__init__(dynamics, likelihood, proposal, **options)
+        if refiner is None:
+            raise ValueError("HybridParticleFilter needs refiner=torchpf.refine.Refiner(skeleton, cameras)")
+        if refine_mode not in _MODES:
+            raise ValueError(f"refine_mode must be one of {_MODES}, got {refine_mode!r}")
+        if int(n_refine) < 1:
+            raise ValueError(f"n_refine must be >= 1, got {n_refine}")
+        self.refiner = refiner
+        self.n_refine = int(n_refine)
+        self.refine_mode = refine_mode
+
+    # ------------------------------------------------------------------ equal likelihood budget
+    @classmethod
+    def refine_evaluations(cls, **options: Any) -> int:
+        """Likelihood-evaluation equivalents of one frame's refinement with constructor keywords
+        ``options``: the refiner's cost for ``n_refine`` poses, plus ``2 n_refine`` for the weight ratio in
+        ``"particles"`` mode."""
+        refiner = options.get("refiner")
+        k = int(options.get("n_refine", 4))
+        if refiner is None:
+            return 0
+        extra = 2 * k if options.get("refine_mode", "particles") == "particles" else 0
+        return refiner.evaluations(k) + extra
+
+    @classmethod
+    def for_budget(cls, budget: int, **options: Any) -> int:
+        """Particles per layer such that the layers plus the refinement evaluate the likelihood at most
+        ``budget`` times per frame (at least 1 particle, so a budget below the refinement's cost is
+        exceeded by the layers' minimum; :attr:`likelihood_evaluations` says by how much)."""
+        if int(budget) < 1:
+            raise ValueError(f"the likelihood budget must be >= 1, got {budget}")
+        left = int(budget) - cls.refine_evaluations(**options)
+        return max(1, left // cls.evaluations_per_particle(**options))
+
+    def budget_options(self) -> dict[str, Any]:
+        return {
+            **super().budget_options(),
+            "refiner": self.refiner,
+            "n_refine": self.n_refine,
+            "refine_mode": self.refine_mode,
+        }
+
+    @property
+    def likelihood_evaluations(self) -> int | None:
+        """Layers' evaluations plus the refinement's (:meth:`refine_evaluations`) per frame."""
+        layers = super().likelihood_evaluations
+        if layers is None:
+            return None
+        return layers + self.refine_evaluations(**self.budget_options())
+
+    # ------------------------------------------------------------------ one frame
+    def step(self, state: ParticleState, obs: Any, generator: torch.Generator | None = None) -> ParticleState:
+        """APF layers, then refinement; ``info`` adds ``refine_gain`` (and ``estimate`` in ``"estimate"``
+        mode)."""
+        state, x, log_w, inc, failed, resampled, x_prev, extras_prev, info = self._anneal(
+            state, obs, generator
+        )
+        k = min(self.n_refine, x.shape[-2])
+        top = log_w.topk(k, dim=-1).indices  # (..., K)
+        xk = gather_particles(x, top)
+        refined = self.refiner(xk, obs)
+        info["refine_gain"] = (refined.loss_before - refined.loss).mean(-1)
+        if self.refine_mode == "estimate":
+            info["estimate"] = refined.x[..., 0, :]  # the best particle, refined
+        else:
+            prev = gather_particles(x_prev, top)
+            dim = x.ndim - 2  # the particle dim, also of the extras (..., N, *e)
+            extras = {key: torch.cat([gather_particles(v, top)] * 2, dim) for key, v in extras_prev.items()}
+            both = torch.cat([xk, refined.x], -2)
+            loglik = self._loglik(self.likelihood, both, obs)
+            target = loglik + self.dynamics.log_prob(both, torch.cat([prev, prev], -2), extras=extras).to(
+                loglik
+            )
+            ratio = target[..., k:] - target[..., :k]
+            # a refined pose the target rejects (-inf, or NaN) is dropped: its particle stays as it was
+            keep = torch.isfinite(ratio)
+            w_k = log_w.gather(-1, top)
+            new_x = torch.where(keep.unsqueeze(-1), refined.x, xk)
+            new_w = torch.where(keep, w_k + ratio, w_k)
+            x = x.scatter(-2, top.unsqueeze(-1).expand_as(new_x), new_x)
+            log_w = normalise(log_w.scatter(-1, top, new_w))
+        return self._end_frame(state, x, log_w, inc, failed, resampled, x_prev, extras_prev, **info)

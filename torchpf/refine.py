@@ -1,0 +1,179 @@
+"""Local optimisation of poses on a differentiable image cue: the "local optimisation" layer of a hybrid
+tracker (Gall, Rosenhahn, Brox, Seidel, IJCV 2010, "Optimization and filtering for human motion capture":
+a global stochastic search, then gradient refinement of its best hypotheses).
+
+:class:`Refiner` minimises, for a batch of poses ``x (..., K, D)`` independently::
+
+    E(x) = -log p_cue(z | x) + (1/2) sum_d ((x_d - x0_d) / s_d)^2
+
+where ``p_cue`` is a differentiable likelihood (default the two-sided distance-transform silhouette cue,
+:class:`~torchpf.likelihoods.SilhouetteDistanceLikelihood`, whose gradient is informative away from the
+silhouette's boundary; any likelihood of :mod:`torchpf.likelihoods` works) and the optional quadratic term
+keeps each pose near its start ``x0`` (``s`` = the motion prior's per-frame std times ``anchor``): silhouettes
+leave some rotations free (a forearm's roll), and the prior decides those.
+
+The optimiser is Adam (Kingma & Ba 2015) run elementwise, so every pose of the batch takes its own steps
+(batch-independent: one pose's loss never scales another's step), with a learning rate per DOF kind
+(radians for revolute DOFs, metres for prismatic ones) decayed linearly to 10 %, a projection onto the joint
+limits after every step (projected gradient descent), frozen DOFs (fixed by their limits, or given), and
+keep-best: each pose returns the best iterate it visited, so refinement never makes a pose worse on ``E``.
+
+Cost: one step is one forward and one backward pass of the cue for the ``K`` poses, about
+:attr:`Refiner.cost_per_step` likelihood evaluations each (forward + backward ~ 3 forwards, the usual
+reverse-mode ratio; ``python -m benchmarks.refine`` measures it); :meth:`Refiner.evaluations` counts them
+for the equal-budget comparisons of :mod:`torchpf.filters.registry`.
+
+Example::
+
+    from torchpf.refine import Refiner
+    refiner = Refiner(skel, cameras, steps=20)
+    out = refiner(poses, Silhouettes(masks))              # poses (K, D) -> out.x (K, D), out.loss (K,)
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor, nn
+
+__all__ = ["RefineResult", "Refiner"]
+
+
+@dataclass
+class RefineResult:
+    """What :meth:`Refiner.forward` returns: ``x (..., K, D)`` the refined poses (the best iterate of each),
+    ``loss_before``, ``loss`` ``(..., K)`` the objective ``E`` at the start and at ``x``, ``steps`` taken."""
+
+    x: Tensor
+    loss_before: Tensor
+    loss: Tensor
+    steps: int
+
+
+class Refiner(nn.Module):
+    """Projected Adam on ``E(x) = -log p_cue(z | x) + anchor term`` (module docstring), batched over poses.
+
+    Args:
+        skeleton: the body model (its limits, revolute mask).
+        cameras: a :class:`~torchpf.camera.CameraRig` or list of cameras; used to build the default cue.
+        cue: a likelihood module ``(x (..., K, D), obs) -> (..., K)``, or a name of
+            :data:`~torchpf.likelihoods.LIKELIHOODS` (default ``"silhouette_distance"``).
+        cue_options: keywords of a named cue.
+        steps: gradient steps per call.
+        lr_rotation: Adam step (radians) for revolute DOFs; ``lr_translation`` (metres) for prismatic ones.
+        anchor: weight of the start-pose term, in units of ``std`` (``None`` or 0: no anchor term).
+        std: ``(D,)`` per-DOF scale ``s`` of the anchor term (the motion prior's per-frame std); required
+            when ``anchor`` is set.
+        frozen: ``(D,)`` bool of DOFs never moved; DOFs with ``lower == upper`` are always frozen.
+    """
+
+    #: likelihood evaluations one gradient step costs per pose (forward + backward ~ 3 forwards)
+    cost_per_step: float = 3.0
+
+    def __init__(
+        self,
+        skeleton,
+        cameras=None,
+        *,
+        cue="silhouette_distance",
+        cue_options=None,
+        steps: int = 20,
+        lr_rotation: float = 0.03,
+        lr_translation: float = 0.01,
+        anchor: float | None = None,
+        std=None,
+        frozen=None,
+    ):
+        super().__init__()
+        if isinstance(cue, str):
+            from torchpf.likelihoods import LIKELIHOODS
+
+            cue = LIKELIHOODS.get(cue)(skeleton, cameras, **dict(cue_options or {}))
+        if steps < 0:
+            raise ValueError(f"steps must be >= 0, got {steps}")
+        if not (lr_rotation > 0 and lr_translation > 0):
+            raise ValueError("lr_rotation and lr_translation must be positive")
+        self.skeleton = skeleton
+        self.cue = cue
+        self.steps = int(steps)
+        lr = torch.where(skeleton.dof_revolute, lr_rotation, lr_translation).double()
+        fixed = skeleton.lower >= skeleton.upper
+        if frozen is not None:
+            frozen = torch.as_tensor(frozen, dtype=torch.bool)
+            if frozen.shape != fixed.shape:
+                raise ValueError(f"frozen must have shape {tuple(fixed.shape)}, got {tuple(frozen.shape)}")
+            fixed = fixed | frozen.to(fixed.device)
+        self.register_buffer("lr", torch.where(fixed.to(lr.device), 0.0, lr))
+        self.anchor = float(anchor or 0.0)
+        if self.anchor > 0:
+            if std is None:
+                raise ValueError("anchor needs std, the (D,) per-DOF scale of the start-pose term")
+            std = torch.as_tensor(std, dtype=torch.float64).expand(fixed.shape).clamp_min(1e-6)
+            self.register_buffer("std", std.clone())
+        else:
+            self.std = None
+
+    def evaluations(self, n_poses: int) -> int:
+        """Likelihood-evaluation equivalents of refining ``n_poses`` poses once (``steps`` gradient steps,
+        plus the final look at the last iterate)."""
+        return int(math.ceil(n_poses * (self.steps * self.cost_per_step + 1)))
+
+    def objective(self, x: Tensor, obs, x0: Tensor | None = None) -> Tensor:
+        """``E(x) (..., K)`` for poses ``x (..., K, D)``; ``x0`` the anchor's start poses (same shape)."""
+        loss = -self.cue(x, obs)
+        if self.anchor > 0 and x0 is not None:
+            z = (x - x0) / self.std.to(x)
+            loss = loss + 0.5 * self.anchor * (z * z).sum(-1)
+        return loss
+
+    def forward(self, x: Tensor, obs) -> RefineResult:
+        """Refine poses ``x (..., K, D)`` on observation ``obs``; returns a :class:`RefineResult`.
+
+        Runs with gradients enabled whatever the caller's grad mode (a filter calls it under ``no_grad``);
+        the result is detached. A pose whose objective is not finite is left where it is.
+        """
+        lower, upper = self.skeleton.lower.to(x), self.skeleton.upper.to(x)
+        # A non-finite pose is not refined (and must not reach the cue's backward pass: grid_sample's
+        # gradient at a NaN coordinate reads out of bounds); a finite stand-in runs in its place.
+        finite = torch.isfinite(x).all(-1, keepdim=True)
+        x0 = torch.where(finite, x.detach(), torch.minimum(torch.maximum(torch.zeros_like(x), lower), upper))
+        lr = self.lr.to(x0)
+        b1, b2, eps = 0.9, 0.999, 1e-8
+        cur = x0.clone()
+        m = torch.zeros_like(cur)
+        v = torch.zeros_like(cur)
+        best = cur.clone()
+        best_loss = torch.full(cur.shape[:-1], math.inf, dtype=cur.dtype, device=cur.device)
+        first = None
+        with torch.enable_grad():
+            for step in range(self.steps):
+                xr = cur.detach().requires_grad_(True)
+                loss = self.objective(xr, obs, x0)
+                (grad,) = torch.autograd.grad(loss.sum(), xr)
+                loss = loss.detach()
+                if first is None:
+                    first = loss
+                better = loss < best_loss  # NaN compares False: a non-finite iterate is never kept
+                best = torch.where(better.unsqueeze(-1), cur, best)
+                best_loss = torch.where(better, loss, best_loss)
+                grad = torch.nan_to_num(grad, nan=0.0, posinf=0.0, neginf=0.0)
+                m = b1 * m + (1 - b1) * grad
+                v = b2 * v + (1 - b2) * grad * grad
+                k = step + 1
+                decay = 1.0 - 0.9 * step / max(1, self.steps - 1)
+                move = (m / (1 - b1**k)) / ((v / (1 - b2**k)).sqrt() + eps)
+                cur = torch.minimum(torch.maximum(cur - decay * lr * move, lower), upper)
+        with torch.no_grad():
+            last = self.objective(cur, obs, x0)
+        if first is None:
+            first = last
+        better = last < best_loss
+        best = torch.where(better.unsqueeze(-1), cur, best)
+        best_loss = torch.where(better, last, best_loss)
+        stuck = ~torch.isfinite(best_loss).unsqueeze(-1) | ~finite  # never finite: keep the start pose
+        best = torch.where(stuck, x.detach(), best)
+        best_loss = torch.where(finite.squeeze(-1), best_loss, math.nan)
+        first = torch.where(finite.squeeze(-1), first, math.nan)
+        return RefineResult(x=best, loss_before=first, loss=best_loss, steps=self.steps)
