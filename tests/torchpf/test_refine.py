@@ -1,8 +1,8 @@
 """Local pose refinement (`torchpf.refine.Refiner`) and its cue (`SilhouetteDistanceLikelihood`).
 
 The masks come from the independent renderer of `_masks.py` (convex hulls of projected sphere points drawn
-with OpenCV), not from torchpf.synth or torchpf.geometry, so the refiner's optimum is the renderer's pose up to
-the capsule model's pixel-level differences, not a copy of its own rendering.
+with OpenCV), not from torchpf.synth or torchpf.geometry, so the refiner's optimum is the renderer's pose up
+to the capsule model's pixel-level differences, not a copy of its own rendering.
 """
 
 import math

@@ -30,7 +30,7 @@ Example::
 
     from torchpf.refine import Refiner
     hybrid = HybridParticleFilter(dynamics, likelihood, refiner=Refiner(skel, cameras), n_particles=100)
-    track = hybrid.run(frames, x0, generator=0)      # track.stats["refine_gain"]: (T,) nats gained by refining
+    track = hybrid.run(frames, x0, generator=0)   # track.stats["refine_gain"]: (T,) nats gained by refining
 """
 
 from __future__ import annotations
@@ -38,7 +38,6 @@ from __future__ import annotations
 from typing import Any
 
 import torch
-from torch import Tensor
 
 from torchpf.filters.annealed import AnnealedParticleFilter
 from torchpf.filters.state import ParticleState, gather_particles
