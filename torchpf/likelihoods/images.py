@@ -238,7 +238,8 @@ class SilhouetteDistanceLikelihood(ImageLikelihood):
 
     Per camera ``l`` (pixels of the mask grid)::
 
-        E_l = sum_i w_i rho(d_mask(p_i)) / sum_i w_i + (1 / N_s) sum_j rho(d_model(q_j)),  rho(d) = min(d, tau)^2
+        E_l = sum_i w_i rho(d_mask(p_i)) / sum_i w_i + (1 / N_s) sum_j rho(d_model(q_j))
+        rho(d) = min(d, tau)^2
         log p = -sum_l E_l / (2 sigma^2)
 
     ``p_i`` are the model's area points with their areas ``w_i`` (the pattern of
