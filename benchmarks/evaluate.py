@@ -870,6 +870,17 @@ FOREIGN_SETUPS: dict[str, Callable[..., Any]] = {
     ),
     "bidir_partitioned_cv": tracker_setup(**_BIDIR, filter="partitioned", dynamics="constant_velocity"),
     "bidir_partitioned_damped": tracker_setup(**_BIDIR, filter="partitioned", dynamics="damped"),
+    # issue 12: the hybrid filter (APF layers + gradient refinement, torchpf.filters.hybrid), same budget
+    "hybrid": tracker_setup(filter="hybrid"),
+    "hybrid_particles": tracker_setup(filter="hybrid", filter_options={"refine_mode": "particles"}),
+    "hybrid_particles_free": tracker_setup(
+        filter="hybrid", filter_options={"refine_mode": "particles", "refine_prior": False}
+    ),
+    "hybrid_estimate": tracker_setup(filter="hybrid", filter_options={"refine_mode": "estimate"}),
+    "calibrated_hybrid": calibrated_setup(filter="hybrid"),
+    "calibrated_hybrid_particles": calibrated_setup(
+        filter="hybrid", filter_options={"refine_mode": "particles"}
+    ),
     # ---- AFTER (issue 11): add the new configurations here, one entry each, e.g.
     # "calibrated": fit the body (torchpf.calibrate.fit_body on the first frames, pose from truth.csv
     #               frame 0), then track with the fitted skeleton;

@@ -4,13 +4,14 @@ a global stochastic search, then gradient refinement of its best hypotheses).
 
 :class:`Refiner` minimises, for a batch of poses ``x (..., K, D)`` independently::
 
-    E(x) = -log p_cue(z | x) + (1/2) sum_d ((x_d - x0_d) / s_d)^2
+    E(x) = -log p_cue(z | x) - log p(x)
 
 where ``p_cue`` is a differentiable likelihood (default the two-sided distance-transform silhouette cue,
 :class:`~torchpf.likelihoods.SilhouetteDistanceLikelihood`, whose gradient is informative away from the
-silhouette's boundary; any likelihood of :mod:`torchpf.likelihoods` works) and the optional quadratic term
-keeps each pose near its start ``x0`` (``s`` = the motion prior's per-frame std times ``anchor``): silhouettes
-leave some rotations free (a forearm's roll), and the prior decides those.
+silhouette's boundary; any likelihood of :mod:`torchpf.likelihoods` works) and ``log p(x)`` an optional
+log-prior passed per call (a filter passes its motion prior ``log p(x | x_{t-1})`` given each particle's
+parent, so the refinement climbs the filtering posterior): silhouettes leave some rotations free (a
+forearm's roll, a finger), and without a prior the optimiser moves those at random.
 
 The optimiser is Adam (Kingma & Ba 2015) run elementwise, so every pose of the batch takes its own steps
 (batch-independent: one pose's loss never scales another's step), with a learning rate per DOF kind
@@ -63,9 +64,6 @@ class Refiner(nn.Module):
         cue_options: keywords of a named cue.
         steps: gradient steps per call.
         lr_rotation: Adam step (radians) for revolute DOFs; ``lr_translation`` (metres) for prismatic ones.
-        anchor: weight of the start-pose term, in units of ``std`` (``None`` or 0: no anchor term).
-        std: ``(D,)`` per-DOF scale ``s`` of the anchor term (the motion prior's per-frame std); required
-            when ``anchor`` is set.
         frozen: ``(D,)`` bool of DOFs never moved; DOFs with ``lower == upper`` are always frozen.
     """
 
@@ -82,8 +80,6 @@ class Refiner(nn.Module):
         steps: int = 20,
         lr_rotation: float = 0.03,
         lr_translation: float = 0.01,
-        anchor: float | None = None,
-        std=None,
         frozen=None,
     ):
         super().__init__()
@@ -106,30 +102,23 @@ class Refiner(nn.Module):
                 raise ValueError(f"frozen must have shape {tuple(fixed.shape)}, got {tuple(frozen.shape)}")
             fixed = fixed | frozen.to(fixed.device)
         self.register_buffer("lr", torch.where(fixed.to(lr.device), 0.0, lr))
-        self.anchor = float(anchor or 0.0)
-        if self.anchor > 0:
-            if std is None:
-                raise ValueError("anchor needs std, the (D,) per-DOF scale of the start-pose term")
-            std = torch.as_tensor(std, dtype=torch.float64).expand(fixed.shape).clamp_min(1e-6)
-            self.register_buffer("std", std.clone())
-        else:
-            self.std = None
 
     def evaluations(self, n_poses: int) -> int:
         """Likelihood-evaluation equivalents of refining ``n_poses`` poses once (``steps`` gradient steps,
         plus the final look at the last iterate)."""
         return int(math.ceil(n_poses * (self.steps * self.cost_per_step + 1)))
 
-    def objective(self, x: Tensor, obs, x0: Tensor | None = None) -> Tensor:
-        """``E(x) (..., K)`` for poses ``x (..., K, D)``; ``x0`` the anchor's start poses (same shape)."""
+    def objective(self, x: Tensor, obs, log_prior=None) -> Tensor:
+        """``E(x) (..., K)`` for poses ``x (..., K, D)``; ``log_prior``: ``x -> (..., K)`` or None."""
         loss = -self.cue(x, obs)
-        if self.anchor > 0 and x0 is not None:
-            z = (x - x0) / self.std.to(x)
-            loss = loss + 0.5 * self.anchor * (z * z).sum(-1)
+        if log_prior is not None:
+            loss = loss - log_prior(x).to(loss)
         return loss
 
-    def forward(self, x: Tensor, obs) -> RefineResult:
+    def forward(self, x: Tensor, obs, log_prior=None) -> RefineResult:
         """Refine poses ``x (..., K, D)`` on observation ``obs``; returns a :class:`RefineResult`.
+
+        ``log_prior``: optional differentiable ``x (..., K, D) -> (..., K)`` log-prior added to the cue.
 
         Runs with gradients enabled whatever the caller's grad mode (a filter calls it under ``no_grad``);
         the result is detached. A pose whose objective is not finite is left where it is.
@@ -150,7 +139,7 @@ class Refiner(nn.Module):
         with torch.enable_grad():
             for step in range(self.steps):
                 xr = cur.detach().requires_grad_(True)
-                loss = self.objective(xr, obs, x0)
+                loss = self.objective(xr, obs, log_prior)
                 (grad,) = torch.autograd.grad(loss.sum(), xr)
                 loss = loss.detach()
                 if first is None:
@@ -166,7 +155,7 @@ class Refiner(nn.Module):
                 move = (m / (1 - b1**k)) / ((v / (1 - b2**k)).sqrt() + eps)
                 cur = torch.minimum(torch.maximum(cur - decay * lr * move, lower), upper)
         with torch.no_grad():
-            last = self.objective(cur, obs, x0)
+            last = self.objective(cur, obs, log_prior)
         if first is None:
             first = last
         better = last < best_loss

@@ -136,9 +136,16 @@ def test_refiner_is_batch_independent_and_respects_frozen_dofs(human, scene):
     assert not torch.equal(both[:, 6:], start[:, 6:])
 
 
-def test_refiner_anchor_needs_a_scale_and_a_nan_pose_is_kept(human, scene):
-    with pytest.raises(ValueError, match="anchor needs std"):
-        Refiner(human, scene["rig"], anchor=1.0)
+def test_a_prior_holds_the_pose_and_a_nan_pose_is_kept(human, scene):
+    truth, obs = scene["poses"][0], scene["obs"][0]
+    start = human.clamp(truth + 0.1 * torch.randn(2, len(truth), generator=torch.Generator().manual_seed(4)))
+    free = Refiner(human, scene["rig"], steps=10).double()(start, obs).x
+    held = (
+        Refiner(human, scene["rig"], steps=10)
+        .double()(start, obs, log_prior=lambda x: -0.5 * ((x - start) / 0.01).square().sum(-1))
+        .x
+    )
+    assert (held - start).abs().mean() < 0.5 * (free - start).abs().mean()
     refiner = Refiner(human, scene["rig"], steps=3).double()
     x = scene["poses"][:2].clone()
     x[0, 7] = math.nan

@@ -30,7 +30,7 @@ def walk(std=0.03, d=96):
     return GaussianRandomWalk(torch.full((d,), std))
 
 
-@pytest.mark.parametrize("name", ["sir", "partitioned"])
+@pytest.mark.parametrize("name", ["sir", "partitioned", "hybrid"])
 def test_tracks_a_synthetic_walk(scene, name):
     skel, cams, seq, angles = scene
     tracker = Tracker(
@@ -45,6 +45,11 @@ def test_tracks_a_synthetic_walk(scene, name):
     # the body walks about 0.4 m in these 12 frames; holding the first pose is off by ~0.36 m per joint
     assert error < 0.5 * static, (error, static)
     assert torch.all(result.ess >= 1) and torch.all(result.ess <= tracker.filter.n_particles)
+    assert result.likelihood_evaluations <= 600
+    if name == "hybrid":  # the refinement lowered its objective on every frame (keep-best: never raised it)
+        assert (
+            result.stats["refine_gain"].shape == (len(angles),) and (result.stats["refine_gain"] >= 0).all()
+        )
 
 
 def test_same_seed_same_track_and_equal_budget(scene):

@@ -124,10 +124,14 @@ def _uneven_capsule_sdf(p, pa, pb, ra, rb):
 def distance_to_capsules(points: torch.Tensor, caps: Capsules2D) -> torch.Tensor:
     """Distance (pixels) from image points to the union of projected capsules, 0 inside.
 
-    ``min_c max(0, sdf_c(p))`` with the exact distance to each tapered capsule (the hull of its end discs);
-    invalid capsules (behind a camera) are ignored, and a point with no valid capsule gets ``inf``. The
-    gradient in the capsule parameters is that of the nearest capsule's outline: non-zero however far the
-    point lies from the model, which is what a local optimiser needs (:mod:`torchpf.refine`).
+    ``min_c max(0, |p - q_c(t)| - r_c(t))`` with ``q_c(t)`` the point of capsule ``c``'s axis nearest to
+    ``p`` and ``r_c(t)`` its radius interpolated there: the region of :func:`sample_in_capsules` (the hull of
+    the end discs up to a sliver of relative width ``((ra - rb) / L)^2``). Invalid capsules (behind a
+    camera) are ignored; a point with no valid capsule gets ``inf``. The gradient in the capsule parameters
+    is that of the nearest capsule's outline, non-zero however far the point lies from the model, which is
+    what a local optimiser needs (:mod:`torchpf.refine`). ``|p - a|^2`` and ``(p - a) . e`` come from two
+    matrix products (as in :func:`capsule_coverage`), so the cost is a few element-wise passes over
+    ``(..., C, P)``.
 
     Args:
         points: (P, 2) points shared by every pose, or (..., P, 2) per pose.
@@ -136,10 +140,19 @@ def distance_to_capsules(points: torch.Tensor, caps: Capsules2D) -> torch.Tensor
     Returns:
         (..., P) distances.
     """
-    pts = points.unsqueeze(-3)  # (..., 1, P, 2) against (..., C, 1, 2)
-    sdf = _uneven_capsule_sdf(
-        pts, caps.pa.unsqueeze(-2), caps.pb.unsqueeze(-2), caps.ra.unsqueeze(-1), caps.rb.unsqueeze(-1)
-    )
+    pa, pb = caps.pa, caps.pb
+    e = pb - pa
+    ee = (e * e).sum(-1, keepdim=True)  # (..., C, 1)
+    inv = torch.where(ee > 1e-12, 1.0 / ee.clamp_min(1e-12), torch.zeros_like(ee))
+    pts = points.to(pa)
+    pt = pts.transpose(-1, -2)  # (2, P) or (..., 2, P)
+    pp = (pts * pts).sum(-1).unsqueeze(-2)  # (..., 1, P)
+    qa = pp - 2 * (pa @ pt) + (pa * pa).sum(-1, keepdim=True)  # |p - a|^2, (..., C, P)
+    s = (pts @ e.transpose(-1, -2)).transpose(-1, -2) if points.ndim > 2 else e @ pt
+    s = (s - (pa * e).sum(-1, keepdim=True)) * inv  # the axis parameter of p, unclamped
+    t = s.clamp(0.0, 1.0)
+    d2 = (qa + ee * t * (t - 2 * s)).clamp_min(1e-12)  # |p - a - t e|^2
+    sdf = d2.sqrt() - (caps.ra.unsqueeze(-1) + t * (caps.rb - caps.ra).unsqueeze(-1))
     sdf = torch.where(caps.valid.unsqueeze(-1), sdf, torch.full_like(sdf, math.inf))
     return sdf.amin(-2).clamp_min(0.0)
 

@@ -1,0 +1,121 @@
+"""The hybrid filter (APF layers + refinement of the best particles): budget accounting, the weight of a
+refined particle (ratio of the filtering target, module docstring of `torchpf.filters.hybrid`), the
+"estimate" mode, and the reduction to the APF when the refiner does nothing. The refiners here are exact
+moves on a linear-Gaussian model (a known map), so every expected value is computed independently."""
+
+import math
+
+import pytest
+import torch
+
+from torchpf.filters import AnnealedParticleFilter, HybridParticleFilter
+from torchpf.filters.registry import FILTERS
+from torchpf.refine import RefineResult
+
+from .linear_gaussian import F64, model_4d
+
+
+class ShiftRefiner(torch.nn.Module):
+    """A refiner whose move is known: ``x -> x + shift`` (``steps`` only feeds the cost accounting)."""
+
+    def __init__(self, shift: float, steps: int = 10):
+        super().__init__()
+        self.shift, self.steps = shift, steps
+        self.calls = []
+
+    def evaluations(self, n_poses: int) -> int:
+        return math.ceil(n_poses * (3.0 * self.steps + 1))
+
+    def forward(self, x, obs, log_prior=None):
+        self.calls.append(x.clone())
+        loss = x.square().sum(-1)
+        return RefineResult(x=x + self.shift, loss_before=loss, loss=loss - 1.0, steps=self.steps)
+
+
+@pytest.fixture
+def setup():
+    model = model_4d()
+    g = torch.Generator().manual_seed(0)
+    truth, zs = model.simulate(2, 5, g)
+    x0 = model.initial_particles(2, 64, g)
+    return model, zs, x0
+
+
+def _filters(model, refiner, **kw):
+    opts = dict(n_particles=64, betas=(0.3, 1.0), diffusion_std=0.1, progress=False)
+    apf = AnnealedParticleFilter(model.dynamics(), model.likelihood(), **opts)
+    hybrid = HybridParticleFilter(model.dynamics(), model.likelihood(), refiner=refiner, **opts, **kw)
+    return apf, hybrid
+
+
+def test_budget_counts_layers_and_refinement():
+    kind = FILTERS.get("hybrid")
+    refiner = ShiftRefiner(0.0, steps=10)
+    n = kind.for_budget(500, refiner=refiner, n_refine=4, betas=(0.1, 0.4, 1.0), refine_mode="particles")
+    refine = 4 * 31 + 2 * 4  # the refiner's cost plus the weight ratio's 2K evaluations
+    assert n == (500 - refine) // 3
+    model = model_4d()
+    built = kind.build(
+        model.dynamics(),
+        model.likelihood(),
+        refiner=refiner,
+        n_particles=n,
+        diffusion_std=0.1,
+        refine_mode="particles",
+    )
+    assert built.likelihood_evaluations == 3 * n + refine <= 500
+    est = kind.for_budget(500, refiner=refiner, n_refine=4)  # "estimate" mode: no weight ratio
+    assert est == (500 - 4 * 31) // 3
+
+
+def test_a_refiner_that_does_nothing_gives_the_apf(setup):
+    model, zs, x0 = setup
+    apf, hybrid = _filters(model, ShiftRefiner(0.0), refine_mode="particles")
+    a = apf.run(zs, x0, generator=1)
+    h = hybrid.run(zs, x0, generator=1)
+    torch.testing.assert_close(h.estimates, a.estimates)
+    torch.testing.assert_close(h.final_state.log_weights, a.final_state.log_weights)
+    torch.testing.assert_close(h.log_evidence, a.log_evidence)
+
+
+def test_refined_particles_get_the_target_ratio(setup):
+    model, zs, x0 = setup
+    shift = 0.05
+    apf, hybrid = _filters(model, ShiftRefiner(shift), n_refine=3, refine_mode="particles")
+    state = apf.init(x0)
+    g1, g2 = torch.Generator().manual_seed(5), torch.Generator().manual_seed(5)
+    ref = apf.step(state, zs[0], g1)  # the same layers, unrefined
+    out = hybrid.step(state, zs[0], g2)
+    top = ref.log_weights.topk(3, -1).indices
+    x_k = ref.particles.gather(-2, top.unsqueeze(-1).expand(-1, -1, 4))
+    torch.testing.assert_close(out.particles.gather(-2, top.unsqueeze(-1).expand(-1, -1, 4)), x_k + shift)
+    # independent target ratio: Gaussian likelihood and dynamics evaluated on the parents of the APF frame
+    _, x, log_w, _, _, _, x_prev, _, _ = apf._anneal(state, zs[0], torch.Generator().manual_seed(5))
+    prev = x_prev.gather(-2, top.unsqueeze(-1).expand(-1, -1, 4))
+    lik, dyn = model.likelihood(), model.dynamics()
+    ratio = (
+        lik(x_k + shift, zs[0]) - lik(x_k, zs[0]) + dyn.log_prob(x_k + shift, prev) - dyn.log_prob(x_k, prev)
+    )
+    want = log_w.scatter(-1, top, log_w.gather(-1, top) + ratio)
+    want = want - torch.logsumexp(want, -1, keepdim=True)
+    torch.testing.assert_close(out.log_weights, want)
+    assert torch.allclose(out.info["refine_gain"], torch.ones(2, dtype=F64))
+
+
+def test_estimate_mode_reports_the_refined_best_and_keeps_the_particles(setup):
+    model, zs, x0 = setup
+    apf, hybrid = _filters(model, ShiftRefiner(0.5))
+    a = apf.run(zs, x0, generator=2)
+    h = hybrid.run(zs, x0, generator=2)
+    torch.testing.assert_close(h.final_state.particles, a.final_state.particles)
+    torch.testing.assert_close(h.estimates, a.map_estimates + 0.5)
+
+
+def test_bad_arguments():
+    model = model_4d()
+    with pytest.raises(ValueError, match="needs refiner"):
+        HybridParticleFilter(model.dynamics(), model.likelihood(), diffusion_std=0.1)
+    with pytest.raises(ValueError, match="refine_mode"):
+        HybridParticleFilter(
+            model.dynamics(), model.likelihood(), refiner=ShiftRefiner(0), refine_mode="x", diffusion_std=0.1
+        )
