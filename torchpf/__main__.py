@@ -7,6 +7,7 @@
         [--init truth|POSE.csv]
     python -m torchpf masks VIDEO_OR_FOLDER... --cameras cameras.yaml --out SEQ_DIR \\
         [--background-frames N | --clean-plate IMG...]
+    python -m torchpf render TRACK.csv --skeleton S.urdf --sequence SEQ_DIR --out overlay.mp4
 
 ``track`` reads a sequence directory (DESIGN.md: cameras.yaml, masks/, optional points/, truth.csv), builds a
 :class:`~torchpf.tracker.Tracker` and writes the estimated motion as mocap CSV. ``evaluate`` compares one or
@@ -14,8 +15,9 @@ several tracks (several runs of a stochastic tracker) with the ground truth: Fon
 dispersion and failure rate (eq. 3-6), MPJPE and the angle MSE. ``calibrate`` fits the body's capsule radii
 and scale to the first frames' masks (:func:`torchpf.calibrate.fit_body`), writes the fitted URDF and an
 overlay PNG (masks against the fitted model) next to it. ``masks`` segments synchronised videos (one per
-camera) by background subtraction into a sequence directory (:mod:`torchpf.video`). Bad input ends with a
-one-line error and exit status 2.
+camera) by background subtraction into a sequence directory (:mod:`torchpf.video`); ``render`` draws a
+track's body model over each camera's video frame or mask, side by side (:mod:`torchpf.render`). Bad input
+ends with a one-line error and exit status 2.
 """
 
 from __future__ import annotations
@@ -108,6 +110,18 @@ def _parser() -> argparse.ArgumentParser:
     ma.add_argument("--no-video", action="store_true", help="do not write video/<camera>.mp4")
     ma.add_argument("--fps", type=float, help="frame rate of the written videos (default: the input's)")
     ma.add_argument("--no-progress", action="store_true")
+
+    re_ = sub.add_parser("render", help="draw a track's body model over the sequence, cameras side by side")
+    re_.add_argument("track", help="track CSV (python -m torchpf track --out)")
+    re_.add_argument("--skeleton", required=True, help="URDF of the tracked body")
+    re_.add_argument("--sequence", required=True, help="sequence directory (cameras.yaml, masks/, video/)")
+    re_.add_argument("--out", required=True, help="overlay video (.mp4, .avi) or a folder for PNG frames")
+    re_.add_argument(
+        "--background", default="auto", choices=["auto", "video", "masks"], help="draw over (default auto)"
+    )
+    re_.add_argument("--fps", type=float, help="video frame rate (default: the track's time column, else 30)")
+    re_.add_argument("--min-height", type=int, default=240, help="enlarge smaller tiles to this height (px)")
+    re_.add_argument("--no-progress", action="store_true")
     return ap
 
 
@@ -331,7 +345,39 @@ def _masks(args) -> int:
     return 0
 
 
-_COMMANDS = {"track": _track, "evaluate": _evaluate, "calibrate": _calibrate, "masks": _masks}
+def _render(args) -> int:
+    from torchpf.io import read_mocap_csv
+    from torchpf.render import render_track
+    from torchpf.skeleton import Skeleton
+
+    skel = Skeleton.from_urdf(_require_file(args.skeleton, "skeleton"))
+    if not os.path.isdir(args.sequence):
+        raise CliError(f"sequence directory not found: {args.sequence}")
+    _, times, values = read_mocap_csv(_require_file(args.track, "track"), expected_dof_names=skel.dof_names)
+    fps = args.fps
+    if fps is None:
+        fps = 1.0 / float(times[1] - times[0]) if times is not None and len(times) > 1 else 30.0
+    n = render_track(
+        skel,
+        torch.as_tensor(values, dtype=torch.float64),
+        args.sequence,
+        args.out,
+        fps=fps,
+        background=args.background,
+        min_height=args.min_height,
+        progress=not args.no_progress,
+    )
+    print(f"rendered {n} frames at {fps:g} fps; wrote {args.out}")
+    return 0
+
+
+_COMMANDS = {
+    "track": _track,
+    "evaluate": _evaluate,
+    "calibrate": _calibrate,
+    "masks": _masks,
+    "render": _render,
+}
 
 
 def main(argv: list[str] | None = None) -> int:
