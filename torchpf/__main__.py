@@ -107,6 +107,7 @@ def _parser() -> argparse.ArgumentParser:
     ma.add_argument("--min-area", type=float, default=0.002, help="smallest blob kept, share of image")
     ma.add_argument("--no-fill-holes", action="store_true")
     ma.add_argument("--learning-rate", type=float, help="model adaptation per frame (0 freezes; -1 auto)")
+    ma.add_argument("--size", help="WxH of the written masks, e.g. 160x120 (default: the video's size)")
     ma.add_argument("--no-video", action="store_true", help="do not write video/<camera>.mp4")
     ma.add_argument("--fps", type=float, help="frame rate of the written videos (default: the input's)")
     ma.add_argument("--no-progress", action="store_true")
@@ -313,6 +314,17 @@ def _calibrate(args) -> int:
     return 0
 
 
+def _size(value: str | None) -> tuple[int, int] | None:
+    """``--size WxH`` -> (W, H)."""
+    if value is None:
+        return None
+    try:
+        w, h = (int(v) for v in value.lower().split("x"))
+    except ValueError:
+        raise CliError(f"--size must be WIDTHxHEIGHT, e.g. 160x120, got {value!r}") from None
+    return w, h
+
+
 def _masks(args) -> int:
     from torchpf.video import segment_videos
 
@@ -325,6 +337,7 @@ def _masks(args) -> int:
         start=args.start,
         max_frames=args.frames,
         learning_rate=args.learning_rate,
+        size=_size(args.size),
         subtractor={
             "method": args.method,
             "history": args.history,

@@ -15,8 +15,11 @@ The background model comes from one of:
   more than half of them does); those frames are segmented too;
 * neither: the adaptive model learns from the video itself as it goes (the person must move).
 
-With a plate the model then adapts at ``1 / history`` per frame (slow enough that a person standing still
-for a few seconds is not absorbed; ``learning_rate`` overrides it, 0 freezes the model).
+With a plate the model is frozen by default (``learning_rate=0``): MOG2 learns a plate as one mixture
+component, whose weight adaptation decays below the model's background ratio (0.9) within about 20 frames
+at ``1 / history``, after which anything seen twice becomes background. Pass a small ``learning_rate`` for
+slow lighting changes. The plate is fed once: the per-pixel variance stays at the model's initial value
+(MOG2: 15 grey levels squared), which covers sensor and compression noise; repeated feeds would shrink it.
 
 Sources (:class:`FrameReader`): a video file (anything OpenCV reads: mp4, avi, mov, ...) or a folder of
 images (png, jpg, bmp, tif, sorted by name); a folder holding only videos stands for those videos. Sources
@@ -55,8 +58,6 @@ __all__ = [
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 VIDEO_EXTENSIONS = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".webm", ".mpg", ".mpeg", ".wmv")
-#: How many times a clean plate is fed to the background model (the model's components settle on it).
-PLATE_REPEATS = 10
 
 
 def read_image(path: str | os.PathLike) -> np.ndarray:
@@ -200,6 +201,7 @@ def segment_videos(
     start: int = 0,
     max_frames: int | None = None,
     learning_rate: float | None = None,
+    size: tuple[int, int] | None = None,
     subtractor: Mapping | None = None,
     write_video: bool = True,
     fps: float | None = None,
@@ -216,8 +218,10 @@ def segment_videos(
         clean_plates: one empty-scene image (path or BGR array) per source; excludes ``background_frames``.
         start: first frame written as mask 0 (earlier frames, e.g. an empty lead-in, are only read).
         max_frames: at most this many frames written.
-        learning_rate: per-frame adaptation of the model in [0, 1] (0 freezes it); default ``1 / history``
-            after a plate, automatic (-1) without one.
+        learning_rate: per-frame adaptation of the model in [0, 1] (0 freezes it); default 0 after a plate
+            (module docstring), automatic (-1, ``1 / min(frames seen, history)``) without one.
+        size: ``(width, height)`` of the written masks (segmented at the video's size, then resampled by
+            area: a pixel is foreground when at least half of it is), e.g. the tracker's working size.
         subtractor: keywords of :class:`~torchpf.sensors.BackgroundSubtractor` (method, history,
             threshold, detect_shadows, open_px, close_px, min_area, fill_holes).
         write_video: also write the frames from ``start`` on as ``out/video/<camera>.mp4`` (mask ``t`` is
@@ -232,8 +236,11 @@ def segment_videos(
         ValueError: bad options, sources that do not match the cameras, frames of different sizes within
             one camera, plates of the wrong size. OSError / FileNotFoundError: unreadable sources.
     """
+    import cv2
     from tqdm.auto import tqdm
 
+    if size is not None and (len(size) != 2 or min(size) < 1):
+        raise ValueError(f"size must be (width, height) >= 1, got {size}")
     if background_frames < 0 or start < 0 or (max_frames is not None and max_frames < 0):
         raise ValueError("background_frames, start and max_frames must be >= 0")
     if background_frames and clean_plates is not None:
@@ -264,9 +271,9 @@ def segment_videos(
         background = f"median of the first {background_frames} frames"
     if plates is not None:
         for sub, plate in zip(subs, plates, strict=True):
-            sub.learn([plate] * PLATE_REPEATS)
+            sub.learn([plate])
         if learning_rate is None:
-            learning_rate = 1.0 / float(options.get("history", 200))
+            learning_rate = 0.0
     if learning_rate is None:
         learning_rate = -1.0
 
@@ -296,6 +303,10 @@ def segment_videos(
                 mask = sub.apply(frame, learning_rate=learning_rate)
                 if not write:
                     continue
+                if size is not None and mask.shape[::-1] != tuple(size):
+                    mask = np.where(
+                        cv2.resize(mask, tuple(size), interpolation=cv2.INTER_AREA) >= 128, 255, 0
+                    )
                 write_mask(root, names[v], n, mask)
                 fg[v] += float((mask > 0).mean())
                 if write_video:

@@ -141,9 +141,12 @@ def test_masks_cli(tmp_path, rig_file, capsys):
     out = tmp_path / "seq"
     argv = ["masks", *sources, "--cameras", str(rig_file), "--out", str(out), "--no-progress"]
     plates = ["--clean-plate", str(tmp_path / "plate0.png"), str(tmp_path / "plate1.png")]
-    assert main(argv + plates + ["--frames", "10", "--method", "knn"]) == 0
+    assert main(argv + plates + ["--frames", "10", "--method", "knn", "--size", "80x60"]) == 0
     assert "segmented 10 frames x 2 cameras" in capsys.readouterr().out
-    assert len(read_sequence(out)) == 10
+    seq = read_sequence(out)
+    assert len(seq) == 10 and seq.masks[0][0].shape == (60, 80)  # masks at the asked size
+    assert main(argv + plates + ["--size", "80by60"]) == 2
+    assert "--size must be WIDTHxHEIGHT" in capsys.readouterr().err
     # one unnamed source for two cameras; a plate of another size: one-line errors, status 2
     os.replace(sources[0], tmp_path / "left.avi")
     assert main(["masks", str(tmp_path / "left.avi"), "--cameras", str(rig_file), "--out", str(out)]) == 2
