@@ -78,19 +78,12 @@ def seq_and_track(human, tmp_path):
     angles = torch.stack([_pose(human, s) for s in range(T)]).numpy()
     write_mocap_csv(tmp_path / "track.csv", human.dof_names, angles, times=np.arange(T) / 25.0)
     human.save_urdf(tmp_path / "s.urdf")
-    return tmp_path, T
+    argv = ["render", str(tmp_path / "track.csv"), "--skeleton", str(tmp_path / "s.urdf")]
+    return tmp_path, T, [*argv, "--sequence", str(tmp_path / "seq")]
 
 
 def test_render_cli_video_and_png_frames(seq_and_track, capsys):
-    tmp, T = seq_and_track
-    base = [
-        "render",
-        str(tmp / "track.csv"),
-        "--skeleton",
-        str(tmp / "s.urdf"),
-        "--sequence",
-        str(tmp / "seq"),
-    ]
+    tmp, T, base = seq_and_track
     assert main([*base, "--out", str(tmp / "overlay.mp4"), "--no-progress"]) == 0
     assert "rendered 5 frames at 25 fps" in capsys.readouterr().out
     frames = list(FrameReader(tmp / "overlay.mp4"))
@@ -112,15 +105,7 @@ def test_render_cli_video_and_png_frames(seq_and_track, capsys):
 
 
 def test_render_cli_errors(seq_and_track, capsys):
-    tmp, _ = seq_and_track
-    base = [
-        "render",
-        str(tmp / "track.csv"),
-        "--skeleton",
-        str(tmp / "s.urdf"),
-        "--sequence",
-        str(tmp / "seq"),
-    ]
+    tmp, _, base = seq_and_track
     assert main([*base, "--out", str(tmp / "o.mp4"), "--background", "video"]) == 2
     assert "no video for camera" in capsys.readouterr().err
     write_mocap_csv(tmp / "track.csv", ["a"], np.zeros((2, 1)))
