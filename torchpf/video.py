@@ -75,7 +75,7 @@ class FrameReader:
 
     Iterating opens the source afresh each time (the background pass and the segmentation pass read the
     same frames). ``name``: the file stem or folder name; ``len()``: the frame count (a video's container
-    count, which some formats only estimate).
+    count, which some formats only estimate); ``fps``: a video's frame rate, None for images.
     """
 
     def __init__(self, source: str | os.PathLike):
@@ -83,6 +83,7 @@ class FrameReader:
 
         self.path = os.fspath(source)
         self.name = os.path.splitext(os.path.basename(os.path.normpath(self.path)))[0]
+        self.fps: float | None = None
         if os.path.isdir(self.path):
             self.images = sorted(
                 os.path.join(self.path, f)
@@ -101,9 +102,7 @@ class FrameReader:
             self.fps = float(cap.get(cv2.CAP_PROP_FPS)) or None
             cap.release()
         else:
-            raise FileNotFoundError(f"{self.path}: no such video file or image folder")
-        if self.images is not None:
-            self.fps = None
+            raise FileNotFoundError(f"{self.path}: cannot open: no such video file or image folder")
 
     def __len__(self) -> int:
         return self._count
