@@ -232,8 +232,8 @@ def segment_videos(
         :class:`SegmentReport`.
 
     Raises:
-        ValueError: bad options, sources that do not match the cameras, frames of different sizes within
-            one camera, plates of the wrong size. OSError / FileNotFoundError: unreadable sources.
+        ValueError: bad options, sources that do not match the cameras, a plate whose size is not the
+            frames'. OSError / FileNotFoundError: unreadable sources.
     """
     import cv2
     from tqdm.auto import tqdm

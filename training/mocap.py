@@ -792,23 +792,28 @@ def _bvh_plan(skeleton: Skeleton, scale: float, order: str) -> list[_BvhOut]:
     return out
 
 
-def _bvh_values(plan: list[_BvhOut], skeleton: Skeleton, angles: torch.Tensor, scale: float, order: str):
-    """(T, K) channel values (file units, degrees) of ``angles`` (T, D) in ``skeleton.dof_names`` order."""
+def _bvh_values(
+    plan: list[_BvhOut], skeleton: Skeleton, angles: torch.Tensor, scale: float, order: str
+) -> dict[int, np.ndarray]:
+    """Channel values (file units, degrees) of ``angles`` (T, D) in ``skeleton.dof_names`` order: joint
+    index -> (T, channels of that joint), End Sites left out."""
     theta = angles.detach().to("cpu", torch.float64)
     T = len(theta)
     need = any(p.direct is None and not p.end_site for p in plan)
     transforms = skeleton.transforms(theta).numpy() if need and T else None
     th = theta.numpy()
-    cols = []
+    blocks = {}
     C = Y_UP_TO_Z_UP
     for j, p in enumerate(plan):
         if p.end_site:
             continue
-        if p.direct is not None:
-            cols.extend(factor * th[:, dof] for dof, factor in p.direct)
-            continue
+        cols: list[np.ndarray] = []
+        blocks[j] = cols
         if T == 0:
             cols.extend(np.zeros(0) for _ in p.channels)
+            continue
+        if p.direct is not None:
+            cols.extend(factor * th[:, dof] for dof, factor in p.direct)
             continue
         if p.parent >= 0:
             Rp, tp = transforms[:, p.parent, :3, :3], transforms[:, p.parent, :3, 3]
@@ -822,7 +827,7 @@ def _bvh_values(plan: list[_BvhOut], skeleton: Skeleton, angles: torch.Tensor, s
         # BVH frame = C^T (URDF frame) C; angles unwrapped over time so that players interpolate smoothly
         euler = _euler_from_matrix(C.T @ R_local @ C, order)
         cols.extend(np.degrees(np.unwrap(euler, axis=0)).T)
-    return np.stack(cols, 1) if cols else np.zeros((T, 0))
+    return {j: np.stack(cols, 1) if cols else np.zeros((T, 0)) for j, cols in blocks.items()}
 
 
 def save_bvh(
@@ -886,12 +891,12 @@ def save_bvh(
     if not bool(torch.isfinite(angles).all()):
         raise ValueError("the motion has non-finite values")
     plan = _bvh_plan(skeleton, scale, order)
-    values = _bvh_values(plan, skeleton, angles, scale, order)
+    blocks = _bvh_values(plan, skeleton, angles, scale, order)
 
     kids: dict[int, list[int]] = {}
     for j, p in enumerate(plan):
         kids.setdefault(p.parent, []).append(j)
-    lines = ["HIERARCHY"]
+    lines, visited = ["HIERARCHY"], []
 
     def num(v) -> str:
         return f"{float(v):.10g}"
@@ -908,11 +913,13 @@ def save_bvh(
         lines.append(f"{pad}{{")
         lines.append(f"{pad}  OFFSET {off(p.offset)}")
         lines.append(f"{pad}  CHANNELS {len(p.channels)} {' '.join(p.channels)}".rstrip())
+        visited.append(j)  # motion columns follow the hierarchy as written
         for c in kids.get(j, []):
             write(c, depth + 1)
         lines.append(f"{pad}}}")
 
     write(kids[-1][0], 0)
+    values = np.concatenate([blocks[j] for j in visited], 1)
     lines += ["MOTION", f"Frames: {len(values)}", f"Frame Time: {1.0 / motion.fps:.10g}"]
     lines.extend(" ".join(num(v) for v in row) for row in values)
     write_text_atomic(path, "\n".join(lines) + "\n")
