@@ -91,10 +91,15 @@ def _parser() -> argparse.ArgumentParser:
     ma.add_argument("--out", required=True, help="sequence directory to write")
     bg = ma.add_mutually_exclusive_group()
     bg.add_argument(
-        "--background-frames", type=int, default=0, help="background = median of the first N frames"
+        "--background-frames",
+        type=int,
+        default=0,
+        help="background = median of the first N frames (also segmented)",
     )
     bg.add_argument(
-        "--clean-plate", nargs="+", help="one image of the empty scene per camera, in source order"
+        "--clean-plate",
+        nargs="+",
+        help="one image of the empty scene per camera, in source order (after the videos)",
     )
     ma.add_argument("--start", type=int, default=0, help="first frame written as mask 0 (default 0)")
     ma.add_argument("--frames", type=int, help="at most this many frames")
