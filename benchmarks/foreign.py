@@ -624,6 +624,106 @@ class ForeignRenderer:
         return out
 
 
+# ================================================================================================ video
+def textured_background(height: int, width: int, seed: int = 0) -> np.ndarray:
+    """(H, W, 3) BGR uint8 scene behind the performer: smooth colour blotches, a striped and a checkered
+    poster and a floor-to-wall brightness ramp, so that background subtraction has texture to model."""
+    rng = np.random.default_rng(seed)
+    coarse = rng.integers(30, 226, (max(2, height // 20), max(2, width // 20), 3)).astype(np.uint8)
+    img = cv2.resize(coarse, (width, height), interpolation=cv2.INTER_CUBIC).astype(np.float64)
+    img *= np.linspace(0.8, 1.1, height)[:, None, None]
+    for _ in range(2):
+        x0, y0 = int(rng.integers(0, width * 3 // 4)), int(rng.integers(0, height // 2))
+        w, h = int(rng.integers(width // 8, width // 3)), int(rng.integers(height // 6, height // 2))
+        ys, xs = np.mgrid[y0 : min(y0 + h, height), x0 : min(x0 + w, width)]
+        period = int(rng.integers(3, 7))
+        pattern = (xs // period + (ys // period) * int(rng.integers(0, 2))) % 2
+        img[ys, xs] = np.where(pattern[..., None] > 0, rng.uniform(20, 90, 3), rng.uniform(160, 240, 3))
+    return np.clip(img, 0, 255).astype(np.uint8)
+
+
+def composite_video(
+    masks: np.ndarray,
+    background: np.ndarray,
+    *,
+    shadows: np.ndarray | None = None,
+    seed: int = 0,
+    noise: float = 2.0,
+    clothing: Sequence[float] = (175.0, 120.0, 60.0),
+) -> np.ndarray:
+    """(T, H, W) 0/255 silhouettes of one camera over ``background`` (H, W, 3) -> (T, H, W, 3) BGR frames:
+    the performer in a textured ``clothing`` colour, darker towards the outline (a rounded body), the
+    optional ``shadows`` (T, H, W) in [0, 1] darkening the scene by up to 30 %, and Gaussian sensor noise of
+    ``noise`` grey levels per frame."""
+    rng = np.random.default_rng(seed)
+    T, H, W = masks.shape
+    weave = cv2.GaussianBlur(rng.standard_normal((H, W)).astype(np.float32), (0, 0), 1.2)
+    weave = 1.0 + 0.12 * weave / max(float(weave.std()), 1e-6)
+    frames = np.empty((T, H, W, 3), np.uint8)
+    base = background.astype(np.float32)
+    for t in range(T):
+        img = base.copy()
+        if shadows is not None:
+            img *= 1.0 - 0.3 * shadows[t][..., None]
+        fg = masks[t] > 0
+        if fg.any():
+            depth = cv2.distanceTransform(fg.astype(np.uint8), cv2.DIST_L2, 3)
+            shade = 0.65 + 0.35 * np.clip(depth / 4.0, 0, 1)
+            body = np.asarray(clothing, np.float32) * (shade * weave)[..., None]
+            img[fg] = body[fg]
+        img += rng.normal(0.0, noise, img.shape).astype(np.float32)
+        frames[t] = np.clip(img, 0, 255).astype(np.uint8)
+    return frames
+
+
+def shadow_masks(joints: np.ndarray, camera, root: int, radius: float = 0.35) -> np.ndarray:
+    """(T, H, W) float32 soft shadow of a performer on the floor (z = 0): a disc of ``radius`` m under the
+    root joint ``root`` of ``joints`` (T, J, 3), projected with ``cv2.projectPoints`` and blurred."""
+    cam = camera_params([camera])[0] if not isinstance(camera, CameraParams) else camera
+    rvec, _ = cv2.Rodrigues(cam.R)
+    phi = np.linspace(0, 2 * np.pi, 24, endpoint=False)
+    out = np.zeros((len(joints), cam.height, cam.width), np.float32)
+    for t, P in enumerate(joints):
+        ring_pts = np.stack(
+            [P[root, 0] + radius * np.cos(phi), P[root, 1] + 0.6 * radius * np.sin(phi), np.zeros_like(phi)],
+            -1,
+        )
+        uv, _ = cv2.projectPoints(ring_pts, rvec, cam.t, cam.K, cam.dist)
+        cv2.fillConvexPoly(out[t], np.round(uv.reshape(-1, 2)).astype(np.int32), 1.0)
+        out[t] = cv2.GaussianBlur(out[t], (0, 0), 2.0)
+    return out
+
+
+def write_videos(
+    out_dir, masks: np.ndarray, cameras, joints: np.ndarray, root: int, fps: float, seed: int = 0
+):
+    """Render ``out_dir/video/<camera>.mp4`` (the performer over a textured scene, with a floor shadow and
+    sensor noise) and ``out_dir/background/<camera>.png`` (the clean plate, one noisy frame of the empty
+    scene) for masks (T, V, H, W) 0/255 seen by ``cameras`` (a rig). Returns the video paths."""
+    from torchpf.io import write_atomic
+
+    out = Path(out_dir)
+    (out / "video").mkdir(parents=True, exist_ok=True)
+    rig_cams = [cameras[v] for v in range(len(cameras))]
+    paths = []
+    for v, cam in enumerate(rig_cams):
+        T, _, H, W = masks.shape
+        bg = textured_background(H, W, seed=seed * 101 + v)
+        frames = composite_video(masks[:, v], bg, shadows=shadow_masks(joints, cam, root), seed=seed + v)
+        path = out / "video" / f"{cam.name}.mp4"
+        writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (W, H))
+        if not writer.isOpened():
+            raise OSError(f"{path}: OpenCV cannot write mp4 video")
+        for f in frames:
+            writer.write(f)
+        writer.release()
+        plate = composite_video(np.zeros((1, H, W), np.uint8), bg, seed=seed + 1000 + v)[0]
+        ok, buf = cv2.imencode(".png", plate)
+        write_atomic(out / "background" / f"{cam.name}.png", buf.tobytes())
+        paths.append(path)
+    return paths
+
+
 # ================================================================================================ sequences
 def resample(angles: torch.Tensor, fps_in: float, fps_out: float, revolute: torch.Tensor) -> torch.Tensor:
     """(T, D) angles at ``fps_in`` -> (T', D) at ``fps_out``: linear interpolation in time, revolute DOFs
@@ -715,6 +815,8 @@ def build_sequence(
     seed: int = 0,
     scale: float = CMU_SCALE,
     in_place: bool = False,
+    video: bool = False,
+    video_scale: int = 2,
 ) -> ForeignSequence:
     """Render a BVH clip with the foreign body and write it as a sequence directory ``out_dir``.
 
@@ -724,7 +826,11 @@ def build_sequence(
     (:func:`place_cameras`). ``performer_seed`` draws the body (default: from the clip's name, so each
     performer gets a body of their own); ``seed`` drives the defects. ``in_place`` removes the root's straight
     horizontal drift instead (:func:`benchmarks.evaluate.treadmill`, for diagnosis: a walk at 1.5 m/s moves
-    the root 5 cm per frame at 30 fps, a run twice that).
+    the root 5 cm per frame at 30 fps, a run twice that). ``video`` also writes what cameras would film
+    (:func:`write_videos`): ``video/<camera>.mp4``, the clean (defect-free) body over a textured scene with a
+    floor shadow and sensor noise, and ``background/<camera>.png`` clean plates, the input of
+    ``python -m torchpf masks`` (``masks/`` keeps the renderer's own silhouettes, to score it against), at
+    ``video_scale`` times the masks' size (a 160x120 mp4 loses the background texture to compression).
     """
     from torchpf.camera import CameraRig
     from torchpf.io import write_text_atomic
@@ -777,5 +883,10 @@ def build_sequence(
         "body": renderer.shape,
         "foreground_fraction": float((masks > 0).mean()),
     }
+    if video:
+        film = CameraRig(rig).resized(size[0] * video_scale, size[1] * video_scale)
+        clean = renderer.render_sequence(angles, film, defects="clean")
+        write_videos(out, clean, film, joints, skel.parents.index(-1), fps, seed=seed)
+        info["video"] = {"size": [size[0] * video_scale, size[1] * video_scale], "noise": 2.0, "shadow": 0.3}
     write_text_atomic(out / "render.json", json.dumps(info, indent=2))
     return ForeignSequence(out, skel_path, skel, angles, fps, rig, info)

@@ -5,14 +5,19 @@
     python -m torchpf evaluate track.csv [run2.csv ...] --truth truth.csv --skeleton S.urdf
     python -m torchpf calibrate SEQ_DIR --skeleton S.urdf --out FITTED.urdf [--frames K] \\
         [--init truth|POSE.csv]
+    python -m torchpf masks VIDEO_OR_FOLDER... --cameras cameras.yaml --out SEQ_DIR \\
+        [--background-frames N | --clean-plate IMG...]
+    python -m torchpf render TRACK.csv --skeleton S.urdf --sequence SEQ_DIR --out overlay.mp4
 
 ``track`` reads a sequence directory (DESIGN.md: cameras.yaml, masks/, optional points/, truth.csv), builds a
 :class:`~torchpf.tracker.Tracker` and writes the estimated motion as mocap CSV. ``evaluate`` compares one or
 several tracks (several runs of a stochastic tracker) with the ground truth: Fontmarty's RMSE, bias,
 dispersion and failure rate (eq. 3-6), MPJPE and the angle MSE. ``calibrate`` fits the body's capsule radii
 and scale to the first frames' masks (:func:`torchpf.calibrate.fit_body`), writes the fitted URDF and an
-overlay PNG (masks against the fitted model) next to it. Bad input ends with a one-line error and
-exit status 2.
+overlay PNG (masks against the fitted model) next to it. ``masks`` segments synchronised videos (one per
+camera) by background subtraction into a sequence directory (:mod:`torchpf.video`); ``render`` draws a
+track's body model over each camera's video frame or mask, side by side (:mod:`torchpf.render`). Bad input
+ends with a one-line error and exit status 2.
 """
 
 from __future__ import annotations
@@ -79,6 +84,50 @@ def _parser() -> argparse.ArgumentParser:
     ca.add_argument("--fit-lengths", action="store_true", help="also fit one length factor per bone group")
     ca.add_argument("--iterations", type=int, default=400, help="most optimiser steps (default 400)")
     ca.add_argument("--no-progress", action="store_true")
+
+    ma = sub.add_parser("masks", help="videos or image folders -> silhouettes -> a sequence directory")
+    ma.add_argument("sources", nargs="+", help="one video file or image folder per camera (named after it)")
+    ma.add_argument("--cameras", required=True, help="cameras.yaml (or an OpenCV calibration file)")
+    ma.add_argument("--out", required=True, help="sequence directory to write")
+    bg = ma.add_mutually_exclusive_group()
+    bg.add_argument(
+        "--background-frames",
+        type=int,
+        default=0,
+        help="background = median of the first N frames (also segmented)",
+    )
+    bg.add_argument(
+        "--clean-plate",
+        nargs="+",
+        help="one image of the empty scene per camera, in source order (after the videos)",
+    )
+    ma.add_argument("--start", type=int, default=0, help="first frame written as mask 0 (default 0)")
+    ma.add_argument("--frames", type=int, help="at most this many frames")
+    ma.add_argument("--method", default="mog2", choices=["mog2", "knn"], help="background model (mog2)")
+    ma.add_argument("--history", type=int, default=200, help="frames the background model remembers")
+    ma.add_argument("--threshold", type=float, help="model threshold (MOG2 16, KNN 400)")
+    ma.add_argument("--no-shadows", action="store_true", help="keep shadows as foreground")
+    ma.add_argument("--open-px", type=int, default=3, help="opening kernel (px), removes speckle (3)")
+    ma.add_argument("--close-px", type=int, default=7, help="closing kernel (px), bridges gaps (7)")
+    ma.add_argument("--min-area", type=float, default=0.002, help="smallest blob kept, share of image")
+    ma.add_argument("--no-fill-holes", action="store_true")
+    ma.add_argument("--learning-rate", type=float, help="model adaptation per frame (0 freezes; -1 auto)")
+    ma.add_argument("--size", help="WxH of the written masks, e.g. 160x120 (default: the video's size)")
+    ma.add_argument("--no-video", action="store_true", help="do not write video/<camera>.mp4")
+    ma.add_argument("--fps", type=float, help="frame rate of the written videos (default: the input's)")
+    ma.add_argument("--no-progress", action="store_true")
+
+    re_ = sub.add_parser("render", help="draw a track's body model over the sequence, cameras side by side")
+    re_.add_argument("track", help="track CSV (python -m torchpf track --out)")
+    re_.add_argument("--skeleton", required=True, help="URDF of the tracked body")
+    re_.add_argument("--sequence", required=True, help="sequence directory (cameras.yaml, masks/, video/)")
+    re_.add_argument("--out", required=True, help="overlay video (.mp4, .avi) or a folder for PNG frames")
+    re_.add_argument(
+        "--background", default="auto", choices=["auto", "video", "masks"], help="draw over (default auto)"
+    )
+    re_.add_argument("--fps", type=float, help="video frame rate (default: the track's time column, else 30)")
+    re_.add_argument("--min-height", type=int, default=240, help="enlarge smaller tiles to this height (px)")
+    re_.add_argument("--no-progress", action="store_true")
     return ap
 
 
@@ -270,7 +319,83 @@ def _calibrate(args) -> int:
     return 0
 
 
-_COMMANDS = {"track": _track, "evaluate": _evaluate, "calibrate": _calibrate}
+def _size(value: str | None) -> tuple[int, int] | None:
+    """``--size WxH`` -> (W, H)."""
+    if value is None:
+        return None
+    try:
+        w, h = (int(v) for v in value.lower().split("x"))
+    except ValueError:
+        raise CliError(f"--size must be WIDTHxHEIGHT, e.g. 160x120, got {value!r}") from None
+    return w, h
+
+
+def _masks(args) -> int:
+    from torchpf.video import segment_videos
+
+    report = segment_videos(
+        args.sources,
+        _require_file(args.cameras, "cameras file"),
+        args.out,
+        background_frames=args.background_frames,
+        clean_plates=args.clean_plate,
+        start=args.start,
+        max_frames=args.frames,
+        learning_rate=args.learning_rate,
+        size=_size(args.size),
+        subtractor={
+            "method": args.method,
+            "history": args.history,
+            "threshold": args.threshold,
+            "detect_shadows": not args.no_shadows,
+            "open_px": args.open_px,
+            "close_px": args.close_px,
+            "min_area": args.min_area,
+            "fill_holes": not args.no_fill_holes,
+        },
+        write_video=not args.no_video,
+        fps=args.fps,
+        progress=not args.no_progress,
+    )
+    if report.n_frames == 0:
+        raise CliError(f"no frame written (sources shorter than --start {args.start}?)")
+    print(report.summary())
+    return 0
+
+
+def _render(args) -> int:
+    from torchpf.io import read_mocap_csv
+    from torchpf.render import render_track
+    from torchpf.skeleton import Skeleton
+
+    skel = Skeleton.from_urdf(_require_file(args.skeleton, "skeleton"))
+    if not os.path.isdir(args.sequence):
+        raise CliError(f"sequence directory not found: {args.sequence}")
+    _, times, values = read_mocap_csv(_require_file(args.track, "track"), expected_dof_names=skel.dof_names)
+    fps = args.fps
+    if fps is None:
+        fps = 1.0 / float(times[1] - times[0]) if times is not None and len(times) > 1 else 30.0
+    n = render_track(
+        skel,
+        torch.as_tensor(values, dtype=torch.float64),
+        args.sequence,
+        args.out,
+        fps=fps,
+        background=args.background,
+        min_height=args.min_height,
+        progress=not args.no_progress,
+    )
+    print(f"rendered {n} frames at {fps:g} fps; wrote {args.out}")
+    return 0
+
+
+_COMMANDS = {
+    "track": _track,
+    "evaluate": _evaluate,
+    "calibrate": _calibrate,
+    "masks": _masks,
+    "render": _render,
+}
 
 
 def main(argv: list[str] | None = None) -> int:

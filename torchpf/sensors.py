@@ -129,28 +129,12 @@ def silhouettes_from_video(
 ) -> Iterator[np.ndarray]:
     """Yield one uint8 0/255 silhouette per frame of a video file (any format OpenCV reads) or an iterable
     of frames. ``warmup`` first frames only train the background model (nothing is yielded for them);
-    ``kwargs`` go to :class:`BackgroundSubtractor`."""
-    import cv2
+    ``kwargs`` go to :class:`BackgroundSubtractor`. Several synchronised cameras into a sequence directory:
+    :func:`torchpf.video.segment_videos`."""
+    from torchpf.video import FrameReader
 
     sub = BackgroundSubtractor(**kwargs)
-    if isinstance(source, (str, os.PathLike)):
-        cap = cv2.VideoCapture(os.fspath(source))
-        if not cap.isOpened():
-            raise OSError(f"{os.fspath(source)}: OpenCV cannot open this video")
-
-        def frames():
-            try:
-                while True:
-                    ok, f = cap.read()
-                    if not ok:
-                        return
-                    yield f
-            finally:
-                cap.release()
-
-        it = frames()
-    else:
-        it = iter(source)
+    it = iter(FrameReader(source)) if isinstance(source, (str, os.PathLike)) else iter(source)
     for i, f in enumerate(it):
         mask = sub.apply(f)
         if i >= warmup:

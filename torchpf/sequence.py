@@ -8,9 +8,10 @@ Layout::
     SEQ/points/<frame:06d>.npy        (K, 3) float32 world points (m)
     SEQ/truth.csv                     header ``time,<dof names...>``, one row per frame
     SEQ/keypoints.npz                 (extension) uv (T, V, J, 2) NaN = missing, joints, cameras
+    SEQ/video/<camera>.mp4            optional: the frames the masks were segmented from (frame t = mask t)
 
 Sequences are made by :func:`torchpf.synth.synthesize` (synthetic) or by background subtraction of videos
-(:func:`torchpf.sensors.silhouettes_from_video`).
+(:func:`torchpf.video.segment_videos`, ``python -m torchpf masks``).
 
 Example::
 
@@ -38,6 +39,7 @@ __all__ = [
     "load_truth_csv",
     "read_sequence",
     "save_truth_csv",
+    "write_mask",
     "write_sequence",
 ]
 
@@ -110,8 +112,6 @@ class SequenceData:
 # ---------------------------------------------------------------------- directory I/O
 def write_sequence(path, seq: SequenceData) -> None:
     """Write ``seq`` as a sequence directory (module docstring); every file is written atomically."""
-    import cv2
-
     root = os.fspath(path)
     cams = CameraRig(seq.cameras.cameras)
     depth_name = None
@@ -123,12 +123,8 @@ def write_sequence(path, seq: SequenceData) -> None:
     names = list(seq.cameras.keys())
     for t, row in enumerate(seq.masks):
         for name, m in zip(names, row, strict=True):
-            if m is None:
-                continue
-            ok, buf = cv2.imencode(".png", np.where(np.asarray(m) > 127, 255, 0).astype(np.uint8))
-            if not ok:
-                raise OSError(f"cannot encode mask {name}/{t:06d}.png")
-            write_atomic(os.path.join(root, "masks", name, f"{t:06d}.png"), buf.tobytes())
+            if m is not None:
+                write_mask(root, name, t, m)
     if seq.points is not None:
         for t, pts in enumerate(seq.points):
             if pts is None:
@@ -147,6 +143,20 @@ def write_sequence(path, seq: SequenceData) -> None:
             cameras=np.asarray(names),
         )
         write_atomic(os.path.join(root, "keypoints.npz"), b.getvalue())
+
+
+def write_mask(path, camera: str, t: int, mask) -> None:
+    """Write one silhouette (H, W) (bool, or uint8 where > 127 is foreground) as
+    ``masks/<camera>/<t:06d>.png`` (0/255) of the sequence directory ``path``, atomically: what
+    :func:`write_sequence` does per mask, for writers that stream frames (:mod:`torchpf.video`)."""
+    import cv2
+
+    m = np.asarray(mask)
+    fg = m if m.dtype == np.bool_ else m > 127
+    ok, buf = cv2.imencode(".png", np.where(fg, 255, 0).astype(np.uint8))
+    if not ok:
+        raise OSError(f"cannot encode mask {camera}/{t:06d}.png")
+    write_atomic(os.path.join(os.fspath(path), "masks", camera, f"{t:06d}.png"), buf.tobytes())
 
 
 def _frame_index(name: str, path: str) -> int:

@@ -6,15 +6,17 @@ Commands::
     python -m training fit --action walk --skeleton S.urdf --out walk.npz DATA/*.csv
     python -m training inspect walk.npz --out DIR                  # -> DIR/synchronisation.png, ...
     python -m training fit-dynamics DATA/*.csv --skeleton S.urdf --out dyn.npz [--fps 30]
+    python -m training export TRACK.csv --skeleton S.urdf --out track.bvh [--scale S]
 
 ``convert`` turns a BVH file into a torchpf skeleton (URDF, z up, metres) and a mocap CSV of its angle
 tracks in the skeleton's ``dof_names`` order (see :mod:`training.mocap`). ``fit`` learns an action model
 (Rius eq. 1-3, :mod:`training.fit`) from performances of one action and saves it as ``.npz``
 (:mod:`priors.action`); ``inspect`` prints its summary and saves the plots of Rius Fig. 1
 (:mod:`training.plots`). ``fit-dynamics`` learns per-DOF step stds and the constant-velocity α
-(:mod:`training.dynamics`) for ``python -m torchpf track --dynamics dyn.npz``. Bad input ends with a
-one-line ``error:`` message on stderr and exit status 2. Each command is one subparser with its own
-``--help``; more commands plug in the same way through :func:`build_parser`.
+(:mod:`training.dynamics`) for ``python -m torchpf track --dynamics dyn.npz``. ``export`` writes a track (or
+any mocap CSV of the skeleton) as BVH for Blender / MotionBuilder (:func:`training.mocap.save_bvh`). Bad
+input ends with a one-line ``error:`` message on stderr and exit status 2. Each command is one subparser with
+its own ``--help``; more commands plug in the same way through :func:`build_parser`.
 """
 
 from __future__ import annotations
@@ -160,6 +162,20 @@ def _fit_dynamics(args: argparse.Namespace) -> int:
     return 0
 
 
+def _export(args: argparse.Namespace) -> int:
+    from torchpf.skeleton import Skeleton
+    from training.mocap import load_csv, save_bvh
+
+    skeleton = Skeleton.from_urdf(args.skeleton)
+    motion = load_csv(args.track, fps=args.fps, dof_names=skeleton.dof_names)
+    save_bvh(args.out, skeleton, motion, scale=args.scale, euler_order=args.euler_order)
+    print(
+        f"wrote {args.out}: {motion.n_frames} frames at {motion.fps:g} fps, {len(skeleton.joint_names)} "
+        f"joints, {args.scale:g} m per file unit"
+    )
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The ``python -m training`` parser; each subcommand sets ``func(args) -> exit status``."""
     parser = argparse.ArgumentParser(prog=PROG, description="Mocap conversion and action-model training.")
@@ -277,6 +293,28 @@ def build_parser() -> argparse.ArgumentParser:
         help="drop the first N frames of every file (CMU conversions: 1, a rest pose)",
     )
     dyn.set_defaults(func=_fit_dynamics)
+
+    export = commands.add_parser(
+        "export",
+        help="track / mocap CSV -> BVH (Blender, MotionBuilder)",
+        description="Write a mocap CSV of a skeleton (e.g. the output of 'python -m torchpf track') as a BVH "
+        "file: y up, one joint per body joint, 6-channel ROOT, Frame Time from the CSV's time column. DOFs "
+        "along coordinate axes become one channel each; other joints are re-decomposed into Euler angles.",
+    )
+    export.add_argument("track", metavar="TRACK.csv", help="mocap CSV in the skeleton's DOF names")
+    export.add_argument("--skeleton", required=True, metavar="S.urdf", help="skeleton of the track")
+    export.add_argument("--out", required=True, type=Path, metavar="OUT.bvh", help="output BVH file")
+    export.add_argument(
+        "--scale",
+        type=_positive_float,
+        default=1.0,
+        help="metres per file unit (CMU: 0.056444; default 1: the file is in metres)",
+    )
+    export.add_argument("--fps", type=_positive_float, help="frame rate when the CSV has no time column")
+    export.add_argument(
+        "--euler-order", default="ZXY", help="channel order of re-decomposed joints (default ZXY)"
+    )
+    export.set_defaults(func=_export)
     return parser
 
 

@@ -6,6 +6,7 @@ Recommended use::
     skel, motion = load_bvh("07_01.bvh", scale=CMU_SCALE)   # torchpf Skeleton, Motion (T, D) rad / m
     joints = skel.fk(motion.angles)                          # (T, J, 3) world positions, metres, z up
     save_csv("07_01.csv", motion); motion = load_csv("07_01.csv")
+    save_bvh("07_01_out.bvh", skel, motion, scale=CMU_SCALE)  # back to BVH (Blender, MotionBuilder)
 
 or from a shell: ``python -m training convert 07_01.bvh --scale 0.056444 --out-dir data/``.
 
@@ -670,3 +671,255 @@ def load_bvh(
     bvh = read_bvh(path)
     skel = Skeleton.from_urdf(bvh_to_urdf(bvh, scale, radii=radii))
     return skel, bvh_motion(bvh, scale, dof_names=skel.dof_names)
+
+
+# ================================================================================================ BVH export
+#: Euler order (BVH channel order) of the joints :func:`save_bvh` re-decomposes; Blender's default.
+BVH_EULER_ORDER = "ZXY"
+
+
+@dataclass(frozen=True)
+class _BvhOut:
+    """One exported joint: name, parent index, OFFSET (file units, y up), channels and how to fill them.
+
+    ``direct``: per channel ``(dof index, factor)`` (value = factor * theta[dof]), or None when the joint's
+    rotation (and position) is re-decomposed from the FK transforms (:func:`_euler_from_matrix`).
+    """
+
+    name: str
+    parent: int
+    offset: np.ndarray
+    channels: tuple[str, ...]
+    direct: tuple[tuple[int, float], ...] | None
+    positions: bool = False
+    end_site: bool = False
+
+
+def _unit_axis(v: np.ndarray, tol: float = 1e-9) -> tuple[int, float] | None:
+    """(axis index, sign) when ``v`` is +-e_k, else None."""
+    k = int(np.argmax(np.abs(v)))
+    if abs(abs(v[k]) - 1.0) > tol or np.abs(np.delete(v, k)).max() > tol:
+        return None
+    return k, float(np.sign(v[k]))
+
+
+def _direct_channels(run, scale: float, is_root: bool):
+    """Channels of a run of URDF frames mapped one DOF -> one BVH channel, or None when they cannot be.
+
+    The map exists when every origin in the run is a pure translation, translations (origins and prismatic
+    DOFs) all come before the first revolute DOF, each DOF axis is a coordinate axis after the y-up change
+    (``C^T axis = +-e_k``) and no axis repeats within rotations or within positions; a root must then have
+    exactly 3 positions and 3 rotations (Blender's ROOT). Returns ``(offset, channels, direct)``.
+    """
+    offset = np.zeros(3)
+    channels, direct, kinds, seen = [], [], [], set()
+    for f in run:
+        static = f.static.numpy()
+        if not np.allclose(static[:3, :3], np.eye(3), atol=1e-9):
+            return None
+        if np.abs(static[:3, 3]).max() > 0 and "revolute" in kinds:
+            return None
+        offset += static[:3, 3]
+        if f.dof < 0:
+            continue
+        if f.joint_type == "prismatic" and "revolute" in kinds:
+            return None
+        axis = _unit_axis(Y_UP_TO_Z_UP.T @ f.axis.numpy())
+        kind = "rotation" if f.joint_type == "revolute" else "position"
+        if axis is None or (kind, axis[0]) in seen:
+            return None
+        seen.add((kind, axis[0]))
+        kinds.append(f.joint_type)
+        channels.append(f"{'XYZ'[axis[0]]}{kind}")
+        direct.append((f.dof, axis[1] * (180.0 / math.pi if kind == "rotation" else 1.0 / scale)))
+    if is_root and (kinds.count("prismatic"), kinds.count("revolute")) != (3, 3):
+        return None
+    return Y_UP_TO_Z_UP.T @ offset / scale, tuple(channels), tuple(direct)
+
+
+def _euler_from_matrix(R: np.ndarray, order: str) -> np.ndarray:
+    """(..., 3, 3) rotations -> (..., 3) angles (rad) ``a`` with ``R = R_o0(a0) @ R_o1(a1) @ R_o2(a2)`` for
+    ``order = o0 o1 o2`` (BVH channel order: intrinsic), any of the 6 Tait-Bryan orders. At gimbal lock
+    (middle angle +-90 deg) the last angle is 0."""
+    i, j, k = ("XYZ".index(c) for c in order)
+    s = 1.0 if (j - i) % 3 == 1 else -1.0  # +1 for the cyclic orders XYZ, YZX, ZXY
+    # atan2 with cos b = |row i off the k column| keeps b accurate near +-90 deg, where arcsin is not
+    cos_b = np.hypot(R[..., i, i], R[..., i, j])
+    b = np.arctan2(s * R[..., i, k], cos_b)
+    a = np.arctan2(-s * R[..., j, k], R[..., k, k])
+    c = np.arctan2(-s * R[..., i, j], R[..., i, i])
+    lock = cos_b < 1e-10
+    a = np.where(lock, np.arctan2(s * R[..., k, j], R[..., j, j]), a)
+    c = np.where(lock, 0.0, c)
+    return np.stack([a, b, c], -1)
+
+
+def _bvh_plan(skeleton: Skeleton, scale: float, order: str) -> list[_BvhOut]:
+    """The exported hierarchy: one BVH joint per body joint, its channels direct or re-decomposed."""
+    from torchpf.kinematics.urdf import flatten_chain
+
+    frames = flatten_chain(skeleton.chain)
+    index = {f.name: i for i, f in enumerate(frames)}
+    rest = skeleton.transforms(torch.zeros(len(skeleton.dof_names), dtype=torch.float64)).numpy()
+    kids = [[c for c, p in enumerate(skeleton.parents) if p == j] for j in range(len(skeleton.parents))]
+    out = []
+    for j, (name, parent) in enumerate(zip(skeleton.joint_names, skeleton.parents, strict=True)):
+        stop = index[skeleton.joint_names[parent]] if parent >= 0 else -1
+        run, f = [], index[name]
+        while f != stop:
+            run.append(frames[f])
+            f = frames[f].parent
+        run.reverse()
+        has_dofs = any(fr.dof >= 0 for fr in run)
+        if parent >= 0:  # OFFSET: the rest-pose position in the parent's frame
+            T_p = rest[parent]
+            local = T_p[:3, :3].T @ (rest[j, :3, 3] - T_p[:3, 3])
+        else:
+            local = rest[j, :3, 3]
+        offset = Y_UP_TO_Z_UP.T @ local / scale
+        if not has_dofs and not kids[j] and parent >= 0:
+            out.append(_BvhOut(name, parent, offset, (), None, end_site=True))
+            continue
+        direct = _direct_channels(run, scale, parent < 0) if has_dofs else None
+        if direct is not None:
+            out.append(_BvhOut(name, parent, direct[0], direct[1], direct[2]))
+            continue
+        # Re-decomposed: the translation varies along the run (a prismatic DOF) or it is the root.
+        moves = parent < 0 or any(fr.joint_type == "prismatic" for fr in run)
+        pos = ("Xposition", "Yposition", "Zposition") if moves else ()
+        rot = tuple(f"{c}rotation" for c in order)
+        out.append(_BvhOut(name, parent, np.zeros(3) if parent < 0 else offset, pos + rot, None, moves))
+    return out
+
+
+def _bvh_values(
+    plan: list[_BvhOut], skeleton: Skeleton, angles: torch.Tensor, scale: float, order: str
+) -> dict[int, np.ndarray]:
+    """Channel values (file units, degrees) of ``angles`` (T, D) in ``skeleton.dof_names`` order: joint
+    index -> (T, channels of that joint), End Sites left out."""
+    theta = angles.detach().to("cpu", torch.float64)
+    T = len(theta)
+    need = any(p.direct is None and not p.end_site for p in plan)
+    transforms = skeleton.transforms(theta).numpy() if need and T else None
+    th = theta.numpy()
+    blocks = {}
+    C = Y_UP_TO_Z_UP
+    for j, p in enumerate(plan):
+        if p.end_site:
+            continue
+        cols: list[np.ndarray] = []
+        blocks[j] = cols
+        if T == 0:
+            cols.extend(np.zeros(0) for _ in p.channels)
+            continue
+        if p.direct is not None:
+            cols.extend(factor * th[:, dof] for dof, factor in p.direct)
+            continue
+        if p.parent >= 0:
+            Rp, tp = transforms[:, p.parent, :3, :3], transforms[:, p.parent, :3, 3]
+        else:
+            Rp, tp = np.eye(3), np.zeros(3)
+        Tj = transforms[:, j]
+        R_local = np.swapaxes(Rp, -1, -2) @ Tj[:, :3, :3]
+        if p.positions:
+            local = (np.swapaxes(Rp, -1, -2) @ (Tj[:, :3, 3] - tp)[..., None])[..., 0]
+            cols.extend((local @ C / scale - p.offset).T)  # (C^T x) for each row
+        # BVH frame = C^T (URDF frame) C; angles unwrapped over time so that players interpolate smoothly
+        euler = _euler_from_matrix(C.T @ R_local @ C, order)
+        cols.extend(np.degrees(np.unwrap(euler, axis=0)).T)
+    return {j: np.stack(cols, 1) if cols else np.zeros((T, 0)) for j, cols in blocks.items()}
+
+
+def save_bvh(
+    path: str | os.PathLike,
+    skeleton: Skeleton,
+    motion: Motion,
+    *,
+    scale: float = 1.0,
+    euler_order: str = BVH_EULER_ORDER,
+) -> None:
+    """Write ``motion`` on ``skeleton`` as a BVH file (Blender, MotionBuilder), atomically.
+
+    The inverse of :func:`load_bvh` (module docstring: ``C`` y up -> z up, ``scale`` metres per file unit):
+    one BVH joint per body joint (``skeleton.joint_names``, parents first), a DOF-less leaf is an
+    ``End Site``; ``OFFSET`` is the rest-pose position in the parent's frame, ``C^T offset / scale``; the
+    ``MOTION`` section has ``Frames: T`` and ``Frame Time: 1 / fps``; values in degrees and file units,
+    in each joint's declared channel order.
+
+    Two ways to fill a joint's channels:
+
+    * **one channel per DOF** (exact, and :func:`load_bvh` gives back the same ``dof_names`` when they are
+      spelled ``f"{joint}_{channel}"``, as a converted BVH or ``torchpf/assets/human.urdf`` are): when the
+      URDF run of the joint has pure-translation origins, translations before rotations, DOF axes along
+      coordinate axes (``+-x, +-y, +-z``, the sign goes into the value) with none repeated, and, for the
+      root, 3 positions + 3 rotations (Blender's 6-channel ROOT);
+    * otherwise **re-decomposed**: the joint's rotation relative to its parent (from
+      :meth:`Skeleton.transforms`) as Euler angles in ``euler_order`` (BVH channel order, unwrapped over
+      time), plus 3 position channels for the root and for a joint with a prismatic DOF. The joint
+      positions and orientations are those of the skeleton (to rounding: ~1e-9 relative), the DOF values
+      are not kept; near gimbal lock (middle angle +-90 deg) the angles are exact but jump.
+
+    What a BVH cannot hold, and so is lost: capsule radii and joint limits (:func:`load_bvh` re-derives
+    defaults), the names of DOF-less leaves (read back as ``f"{parent}_end"``) and frames that are not body
+    joints. A skeleton with several root body joints cannot be written (BVH has one ROOT): ValueError.
+
+    Args:
+        path: output ``.bvh`` file.
+        skeleton: the :class:`torchpf.Skeleton` of the motion.
+        motion: :class:`Motion` with every DOF of ``skeleton`` (any column order; extra columns ignored).
+        scale: metres per file unit (``CMU_SCALE`` writes CMU units; default 1: metres).
+        euler_order: a permutation of ``"XYZ"``: channel order of re-decomposed joints.
+
+    Raises:
+        ValueError: several roots, a motion lacking DOFs of the skeleton, non-finite values, bad order.
+    """
+    from torchpf.io import write_text_atomic
+
+    scale = _check_scale(scale)
+    order = euler_order.upper()
+    if sorted(order) != ["X", "Y", "Z"]:
+        raise ValueError(f"euler_order must be a permutation of XYZ, got {euler_order!r}")
+    roots = [n for n, p in zip(skeleton.joint_names, skeleton.parents, strict=True) if p < 0]
+    if len(roots) != 1:
+        raise ValueError(f"a BVH file has one ROOT; this skeleton has {len(roots)} root joints {roots}")
+    missing = [n for n in skeleton.dof_names if n not in motion.dof_names]
+    if missing:
+        raise ValueError(
+            f"the motion lacks DOF(s) of the skeleton: {missing[:5]}{' ...' if len(missing) > 5 else ''}"
+        )
+    angles = motion.select(skeleton.dof_names).angles
+    if not bool(torch.isfinite(angles).all()):
+        raise ValueError("the motion has non-finite values")
+    plan = _bvh_plan(skeleton, scale, order)
+    blocks = _bvh_values(plan, skeleton, angles, scale, order)
+
+    kids: dict[int, list[int]] = {}
+    for j, p in enumerate(plan):
+        kids.setdefault(p.parent, []).append(j)
+    lines, visited = ["HIERARCHY"], []
+
+    def num(v) -> str:
+        return f"{float(v):.10g}"
+
+    def off(v) -> str:  # the chain holds the URDF offsets in float32: 7 digits give them back unpadded
+        return " ".join(f"{float(x):.7g}" for x in v)
+
+    def write(j: int, depth: int) -> None:
+        p, pad = plan[j], "  " * depth
+        if p.end_site:
+            lines.extend([f"{pad}End Site", f"{pad}{{", f"{pad}  OFFSET {off(p.offset)}", f"{pad}}}"])
+            return
+        lines.append(f"{pad}{'ROOT' if p.parent < 0 else 'JOINT'} {p.name}")
+        lines.append(f"{pad}{{")
+        lines.append(f"{pad}  OFFSET {off(p.offset)}")
+        lines.append(f"{pad}  CHANNELS {len(p.channels)} {' '.join(p.channels)}".rstrip())
+        visited.append(j)  # motion columns follow the hierarchy as written
+        for c in kids.get(j, []):
+            write(c, depth + 1)
+        lines.append(f"{pad}}}")
+
+    write(kids[-1][0], 0)
+    values = np.concatenate([blocks[j] for j in visited], 1)
+    lines += ["MOTION", f"Frames: {len(values)}", f"Frame Time: {1.0 / motion.fps:.10g}"]
+    lines.extend(" ".join(num(v) for v in row) for row in values)
+    write_text_atomic(path, "\n".join(lines) + "\n")

@@ -4,6 +4,7 @@ sequences a user can track, and the --renderer foreign evaluation."""
 import math
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import torch
@@ -147,6 +148,34 @@ def test_built_sequence_reads_back_and_tracks(tmp_path):
     assert root[:, :2].mean(0).abs().max() < 1e-6
     result = Tracker(skel, data.cameras, n_particles=30, progress=False).track(seq.path)
     assert result.angles.shape == (3, len(skel.dof_names)) and torch.isfinite(result.angles).all()
+
+
+@needs_cmu
+def test_video_option_films_a_textured_scene_that_background_subtraction_segments(tmp_path):
+    from torchpf.sequence import read_sequence
+    from torchpf.video import FrameReader, segment_videos
+
+    seq = foreign.build_sequence(CMU / "07_01.bvh", tmp_path / "clip", frames=8, video=True)
+    names = list(seq.cameras.names)
+    videos = [seq.path / "video" / f"{n}.mp4" for n in names]
+    frames = list(FrameReader(videos[0]))
+    assert len(frames) == 8 and frames[0].shape == (240, 320, 3)  # filmed at twice the masks' size
+    plate = cv2.imread(str(seq.path / "background" / f"{names[0]}.png"))
+    assert plate.shape == (240, 320, 3) and plate.std() > 30  # textured, not a flat colour
+    report = segment_videos(
+        videos,
+        seq.path / "cameras.yaml",
+        tmp_path / "seg",
+        clean_plates=[seq.path / "background" / f"{n}.png" for n in names],
+        size=(160, 120),
+        subtractor={"close_px": 3, "threshold": 25},
+        progress=False,
+    )
+    assert report.n_frames == 8
+    truth, seg = read_sequence(seq.path), read_sequence(tmp_path / "seg")
+    A = np.stack([m > 127 for row in truth.masks for m in row])
+    B = np.stack([m > 127 for row in seg.masks for m in row])
+    assert (A & B).sum() / (A | B).sum() > 0.75  # the renderer's silhouettes, recovered from the films
 
 
 @needs_cmu
