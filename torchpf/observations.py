@@ -54,6 +54,27 @@ def _to_tensor(x, dtype=torch.float32) -> torch.Tensor:
     return torch.as_tensor(arr, dtype=dtype)
 
 
+def gaussian_blur(images: torch.Tensor, sigma: float) -> torch.Tensor:
+    """(..., H, W) images smoothed by a Gaussian of ``sigma`` pixels, on their device and in their dtype.
+
+    Separable kernel of ``2 ceil(3 sigma) + 1`` taps normalised to sum 1, borders mirrored without repeating
+    the edge pixel (OpenCV's default ``BORDER_REFLECT_101``; an image narrower than the kernel's half
+    width repeats its edge instead), i.e. what ``cv2.GaussianBlur(img, (k, k), sigma)`` computes.
+    """
+    half = int(math.ceil(3 * sigma))
+    x = images.float() if not images.is_floating_point() else images
+    taps = torch.arange(-half, half + 1, dtype=torch.float64, device=x.device)
+    kernel = torch.exp(-0.5 * (taps / sigma) ** 2)
+    kernel = (kernel / kernel.sum()).to(x.dtype)
+    flat = x.reshape(-1, 1, *x.shape[-2:])
+    H, W = flat.shape[-2:]
+    mode = "reflect" if half < min(H, W) else "replicate"
+    flat = torch.nn.functional.pad(flat, (half, half, half, half), mode=mode)
+    flat = torch.nn.functional.conv2d(flat, kernel.reshape(1, 1, 1, -1))
+    flat = torch.nn.functional.conv2d(flat, kernel.reshape(1, 1, -1, 1))
+    return flat.reshape(x.shape)
+
+
 @dataclass(eq=False)
 class PointCloud:
     """World points of one frame from a depth sensor.
@@ -114,26 +135,20 @@ class Silhouettes:
 
     def blurred(self, sigma: float) -> torch.Tensor:
         """(V, H, W) masks smoothed by a Gaussian of ``sigma`` pixels (0: the masks themselves). A bilinear
-        look-up in it is a smooth function of the point, which gives the silhouette cue a gradient."""
-        key = ("blur", float(sigma))
-        if key not in self._cache:
-            if sigma <= 0:
-                out = self.masks
-            else:
-                import cv2
+        look-up in it is a smooth function of the point, which gives the silhouette cue a gradient.
 
-                k = 2 * int(math.ceil(3 * sigma)) + 1
-                out = torch.stack(
-                    [torch.from_numpy(cv2.GaussianBlur(m.numpy(), (k, k), sigma)) for m in self.masks.float()]
-                ).to(self.masks.dtype)
-            self._cache[key] = out
+        Computed in torch on the masks' device and dtype (separable kernel of ``2 ceil(3 sigma) + 1`` taps,
+        mirrored borders: the same numbers as ``cv2.GaussianBlur``), so GPU masks never leave the GPU."""
+        key = ("blur", float(sigma), self.masks.device, self.masks.dtype)
+        if key not in self._cache:
+            self._cache[key] = gaussian_blur(self.masks, sigma) if sigma > 0 else self.masks
         return self._cache[key]
 
     def area(self) -> torch.Tensor:
         """(V,) foreground area in pixels (sum of the mask)."""
-        if "area" not in self._cache:
-            self._cache["area"] = self.masks.sum((-1, -2))
-        return self._cache["area"]
+        if ("area", self.masks.device) not in self._cache:
+            self._cache[("area", self.masks.device)] = self.masks.sum((-1, -2))
+        return self._cache[("area", self.masks.device)]
 
     def foreground_samples(self, n: int) -> tuple[torch.Tensor, torch.Tensor]:
         """``n`` fixed points on each camera's foreground (Fontmarty's N_s points of the dual cue, §3.2.2).
@@ -145,12 +160,14 @@ class Silhouettes:
         Returns:
             points (V, n, 2) pixel coordinates (u, v); ok (V,) bool, False for an empty or invalid mask.
         """
-        key = ("samples", int(n))
+        key = ("samples", int(n), self.masks.device)
         if key not in self._cache:
-            V = self.masks.shape[0]
-            pts = torch.zeros(V, n, 2)
-            ok = torch.zeros(V, dtype=torch.bool)
-            golden = torch.frac(0.5 + torch.arange(n, dtype=torch.float64) * (math.sqrt(5) - 1) / 2)
+            V, device = self.masks.shape[0], self.masks.device
+            pts = torch.zeros(V, n, 2, device=device)
+            ok = torch.zeros(V, dtype=torch.bool, device=device)
+            golden = torch.frac(
+                0.5 + torch.arange(n, dtype=torch.float64, device=device) * (math.sqrt(5) - 1) / 2
+            )
             for v in range(V):
                 ys, xs = torch.nonzero(self.masks[v] > 0.5, as_tuple=True)
                 if len(xs) == 0 or not bool(self.valid[v]):
