@@ -83,7 +83,15 @@ class Likelihood(nn.Module):
     Args:
         skeleton: anything :meth:`Body.of` accepts, normally a :class:`torchpf.Skeleton`.
         bones: optional subset of capsule indices the cue scores (e.g. one partition's limbs).
+
+    Scale parameters (a cue's ``sigma``, the overlap's ``beta``) are 0-dim float64 tensors made by
+    :meth:`scale_parameter`: buffers by default (they move with ``.to()``), ``nn.Parameter`` s where the
+    cue's ``learnable`` argument names them (``True``: all of them), so that an optimiser can fit them, e.g.
+    by maximising the filter's log-evidence (``ParticleFilter.run(..., grad=True)``).
     """
+
+    #: names of the scale parameters a subclass registers with :meth:`scale_parameter`
+    scales: tuple[str, ...] = ()
 
     obs_type: type = object
     obs_field: str = ""
@@ -95,6 +103,21 @@ class Likelihood(nn.Module):
         self.bones = None if bones is None else list(bones)
         # The bones as an index buffer, so that it moves with the module and no FK call builds it.
         self.register_buffer("bone_index", _bone_index(skeleton), persistent=False)
+
+    def scale_parameter(self, name: str, value, learnable: bool | Sequence[str] = False) -> None:
+        """Register ``name`` as a 0-dim float64 tensor holding ``value``: an ``nn.Parameter`` if
+        ``learnable`` is True or names it, else a buffer. An unknown name in ``learnable`` raises."""
+        if not isinstance(learnable, bool):
+            unknown = set(learnable) - set(self.scales)
+            if unknown:
+                raise ValueError(
+                    f"{type(self).__name__}: learnable names {sorted(unknown)}; it has {list(self.scales)}"
+                )
+        value = torch.as_tensor(value, dtype=torch.float64).detach().clone().reshape(())
+        if learnable is True or (not isinstance(learnable, bool) and name in learnable):
+            self.register_parameter(name, nn.Parameter(value))
+        else:
+            self.register_buffer(name, value)
 
     def select(self, obs):
         """This cue's container in ``obs`` (the container itself, a :class:`Frame` or a dict holding it under

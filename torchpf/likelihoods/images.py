@@ -51,7 +51,9 @@ class ImageLikelihood(Likelihood):
 
     def __init__(self, skeleton, cameras, bones=None):
         super().__init__(skeleton, bones)
-        self.cameras = CameraRig(cameras)  # the likelihood's own copy: moving it leaves the caller's alone
+        # a rig is held as given (edits and learnable parameters of the caller's rig take effect here), a
+        # list of cameras is stacked into one
+        self.cameras = cameras if isinstance(cameras, CameraRig) else CameraRig(cameras)
         if not len(self.cameras):
             raise ValueError("at least one camera is needed")
 
@@ -126,12 +128,14 @@ class SilhouetteLikelihood(ImageLikelihood):
             It widens the basin of attraction but erodes thin limbs (a 4-pixel forearm loses its
             plateau at 1 pixel of blur), which biases the peak at low resolution: 0 by default.
         generator: None (fixed pattern, deterministic) or a generator for fresh random points per call.
+        learnable: ``True`` (or ``["sigma"]``) makes ``sigma`` an ``nn.Parameter`` (see :class:`Likelihood`).
 
     obs: :class:`~torchpf.observations.Silhouettes` (V, H, W).
     """
 
     obs_type = Silhouettes
     obs_field = "silhouettes"
+    scales = ("sigma",)
 
     def __init__(
         self,
@@ -146,11 +150,13 @@ class SilhouetteLikelihood(ImageLikelihood):
         union: bool = False,
         bones: Sequence[int] | None = None,
         generator: torch.Generator | None = None,
+        learnable: bool | Sequence[str] = False,
     ):
         super().__init__(skeleton, cameras, bones)
         if interpolation not in ("bilinear", "nearest"):
             raise ValueError(f"interpolation must be 'bilinear' or 'nearest', got {interpolation!r}")
-        self.sigma, self.n_body, self.n_cap, self.blur = float(sigma), int(n_body), int(n_cap), float(blur)
+        self.scale_parameter("sigma", sigma, learnable)
+        self.n_body, self.n_cap, self.blur = int(n_body), int(n_cap), float(blur)
         self.interpolation, self.union, self.generator = interpolation, bool(union), generator
 
     def _model_points(self, caps: Capsules2D):
@@ -190,12 +196,14 @@ class DualSilhouetteLikelihood(ImageLikelihood):
         n_samples: N_s per camera.
         softness: 0 for the paper's hard 0/1 coverage; > 0 (pixels) ramps coverage across each capsule
             boundary so the cue has a gradient.
+        learnable: ``True`` (or ``["sigma"]``) makes ``sigma`` an ``nn.Parameter``.
 
     obs: :class:`~torchpf.observations.Silhouettes`. A camera with an empty mask contributes 0.
     """
 
     obs_type = Silhouettes
     obs_field = "silhouettes"
+    scales = ("sigma",)
 
     def __init__(
         self,
@@ -206,9 +214,11 @@ class DualSilhouetteLikelihood(ImageLikelihood):
         n_samples: int = 128,
         softness: float = 0.0,
         bones: Sequence[int] | None = None,
+        learnable: bool | Sequence[str] = False,
     ):
         super().__init__(skeleton, cameras, bones)
-        self.sigma, self.n_samples, self.softness = float(sigma), int(n_samples), float(softness)
+        self.scale_parameter("sigma", sigma, learnable)
+        self.n_samples, self.softness = int(n_samples), float(softness)
 
     def _distances(self, body, obs: Silhouettes):
         self._check_cameras(obs.masks.shape[0], "the observation")
@@ -244,7 +254,10 @@ class OverlapLikelihood(SilhouetteLikelihood):
         interpolation: "nearest" (default) counts whole mask pixels, like the paper's pixel sums; the
             likelihood stays differentiable through the model's area. "bilinear" also moves with the
             points but under-counts the intersection along the boundary (~5 % for 4-pixel limbs).
+        learnable: ``True`` (or ``["beta"]``) makes ``beta`` an ``nn.Parameter``.
     """
+
+    scales = ("beta",)
 
     def __init__(
         self,
@@ -259,6 +272,7 @@ class OverlapLikelihood(SilhouetteLikelihood):
         interpolation: str = "nearest",
         bones: Sequence[int] | None = None,
         generator: torch.Generator | None = None,
+        learnable: bool | Sequence[str] = False,
     ):
         super().__init__(
             skeleton,
@@ -271,7 +285,9 @@ class OverlapLikelihood(SilhouetteLikelihood):
             bones=bones,
             generator=generator,
         )
-        self.beta, self.eps = float(beta), float(eps)
+        del self.sigma  # the ratio has no sigma
+        self.scale_parameter("beta", beta, learnable)
+        self.eps = float(eps)
 
     def ratios(self, theta: torch.Tensor, obs) -> torch.Tensor:
         """(..., N, V) overlap ratios |model ∩ mask| / |model ∪ mask| in [0, 1]."""
@@ -316,6 +332,7 @@ class SkinBlobLikelihood(ImageLikelihood):
             both wrists of ``human.urdf`` (``(("Head", "Head_end"), "LeftHand", "RightHand")``) or of
             ``fontmarty22.urdf``, whichever names the skeleton has.
         sigma: pixels of the distance image (5 in Fontmarty et al.).
+        learnable: ``True`` (or ``["sigma"]``) makes ``sigma`` an ``nn.Parameter``.
 
     obs: :class:`~torchpf.observations.DistanceMaps` (V, H, W) distances to the nearest skin blob
     (``DistanceMaps.from_features(skin_masks)``).
@@ -323,8 +340,11 @@ class SkinBlobLikelihood(ImageLikelihood):
 
     obs_type = DistanceMaps
     obs_field = "skin"
+    scales = ("sigma",)
 
-    def __init__(self, skeleton, cameras, *, markers=None, sigma: float = 5.0):
+    def __init__(
+        self, skeleton, cameras, *, markers=None, sigma: float = 5.0, learnable: bool | Sequence[str] = False
+    ):
         if markers is None:
             names = set(skeleton.joint_names)
             flat = [[m] if isinstance(m, str) else list(m) for m in _DEFAULT_MARKERS[0]]
@@ -341,7 +361,7 @@ class SkinBlobLikelihood(ImageLikelihood):
         for i, g in enumerate(groups):
             A[g, i] = 1.0 / len(g)
         self.register_buffer("marker_matrix", A)
-        self.sigma = float(sigma)
+        self.scale_parameter("sigma", sigma, learnable)
 
     def markers(self, theta: torch.Tensor) -> torch.Tensor:
         """(..., D) -> (..., M, 3) world positions of the virtual markers."""
@@ -375,6 +395,7 @@ class ChamferLikelihood(ImageLikelihood):
         sigma, tau: pixels of the distance image.
         n_side, n_cap: outline points per capsule flank and per end arc.
         outline_only: drop outline points covered by another capsule, keeping the silhouette outline.
+        learnable: ``True`` (or ``["sigma"]``) makes ``sigma`` an ``nn.Parameter`` (``tau`` stays fixed).
 
     obs: :class:`~torchpf.observations.DistanceMaps` (V, H, W) distances to the nearest edge pixel
     (``DistanceMaps.from_edges_of(images)``).
@@ -382,6 +403,7 @@ class ChamferLikelihood(ImageLikelihood):
 
     obs_type = DistanceMaps
     obs_field = "edges"
+    scales = ("sigma",)
 
     def __init__(
         self,
@@ -394,9 +416,11 @@ class ChamferLikelihood(ImageLikelihood):
         n_cap: int = 2,
         outline_only: bool = True,
         bones: Sequence[int] | None = None,
+        learnable: bool | Sequence[str] = False,
     ):
         super().__init__(skeleton, cameras, bones)
-        self.sigma, self.tau = float(sigma), float(tau)
+        self.scale_parameter("sigma", sigma, learnable)
+        self.tau = float(tau)
         self.n_side, self.n_cap, self.outline_only = int(n_side), int(n_cap), bool(outline_only)
 
     def _log_lik(self, body, obs: DistanceMaps):
