@@ -286,3 +286,22 @@ def test_project_cuda():
     cam = random_camera(np.random.default_rng(7))
     X = torch.randn(100, 3, dtype=torch.float64)
     np.testing.assert_allclose(cam.project(X.cuda()).cpu().numpy(), cam.project(X).numpy(), atol=1e-9)
+
+
+def test_learnable_rig_parameters(device):
+    rig = camera_ring(3, width=160, height_px=120)
+    fitted = CameraRig(rig, learnable=True).to(device)
+    assert {n for n, _ in fitted.named_parameters()} == {"K", "rotation_update", "t", "dist"}
+    x = torch.randn(7, 3, dtype=torch.float64, device=device)
+    torch.testing.assert_close(fitted.project(x).cpu(), rig.project(x.cpu()))
+    fitted.resized(80, 60).project(x).square().sum().backward()  # through the resized intrinsics too
+    assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in fitted.parameters())
+    with torch.no_grad():
+        fitted.rotation_update[1] = torch.tensor([0.1, -0.2, 0.3])
+    R = fitted.R  # the current rotation, exp([w]x) R_0: still a rotation
+    eye = torch.eye(3, dtype=R.dtype, device=device).expand(3, 3, 3)
+    torch.testing.assert_close(R @ R.transpose(-1, -2), eye)
+    torch.testing.assert_close(fitted[1].R, R[1])
+    assert not torch.allclose(R[1].cpu(), rig.R[1]) and torch.equal(R[0].cpu(), rig.R[0])
+    with pytest.raises(ValueError, match="learnable"):
+        CameraRig(rig, learnable=["f"])
