@@ -65,6 +65,29 @@ class Body:
         radii = skeleton.radii.to(device=joints.device, dtype=joints.dtype)
         return cls(flat, batch, joints, joints[:, bone_index.to(joints.device)], radii)
 
+    def rows(self, t: torch.Tensor, event_dims: int) -> torch.Tensor:
+        """An observation tensor ``(*obs_batch, *event)`` aligned with the B flattened poses: ``(B, *event)``.
+
+        ``obs_batch`` (a batch of independent sequences) must be a prefix of :attr:`batch`, e.g. ``(S,)``
+        observations for ``(S, N, D)`` poses; each pose gets its sequence's entry. Without leading dims
+        ``t`` is returned as is (one observation shared by every pose broadcasts).
+        """
+        lead = t.ndim - event_dims
+        if lead <= 0:
+            return t
+        self.check_batch(t.shape[:lead])
+        event = t.shape[lead:]
+        t = t.reshape(*t.shape[:lead], *[1] * (len(self.batch) - lead), *event).expand(*self.batch, *event)
+        return t.reshape(-1, *event)
+
+    def check_batch(self, obs_batch: Sequence[int]) -> None:
+        """Raise unless a batched observation's leading dims ``obs_batch`` are a prefix of the poses'."""
+        if tuple(self.batch[: len(obs_batch)]) != tuple(obs_batch):
+            raise ValueError(
+                f"observations batched as {tuple(obs_batch)} do not match the poses' leading dims "
+                f"{tuple(self.batch)}: a batch of sequences needs (S, ...) observations for (S, N, D) poses"
+            )
+
     def capsules(self, bones: Sequence[int] | None = None):
         """Capsule ends ``a``, ``b`` (B, C', 3) and radii (C',) of all bones or of the subset ``bones``."""
         ends, radii = self.ends, self.radii

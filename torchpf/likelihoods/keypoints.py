@@ -66,13 +66,17 @@ class Keypoints2DLikelihood(ImageLikelihood):
         self.image_size = image_size
 
     def _log_lik(self, body, obs: Keypoints2D):
-        self._check_cameras(obs.uv.shape[0], "the observation")
-        if obs.uv.shape[1] != len(self.joint_index):
-            raise ValueError(f"obs has {obs.uv.shape[1]} points per camera, expected {len(self.joint_index)}")
+        self._check_cameras(obs.uv, body)
+        if obs.uv.shape[-2] != len(self.joint_index):
+            raise ValueError(
+                f"obs has {obs.uv.shape[-2]} points per camera, expected {len(self.joint_index)}"
+            )
         X = body.joints[:, self.joint_index]  # (B, J, 3)
         rig = self.cameras if self.image_size is None else self.cameras.resized(*self.image_size)
         uv = rig.project(X)  # (B, J, V, 2)
-        d2 = (uv - obs.uv.transpose(0, 1).to(uv)).square().sum(-1)  # (B, J, V)
+        observed = body.rows(obs.uv.to(uv), 3).transpose(-3, -2)  # (J, V, 2) or (B, J, V, 2)
+        visible = body.rows(obs.visible.to(uv.device), 2).transpose(-2, -1)
+        d2 = (uv - observed).square().sum(-1)  # (B, J, V)
         s2 = self.sigma.to(d2).square()
         if self.noise == "gaussian":
             lp = -d2 / (2 * s2) - torch.log(2 * math.pi * s2)
@@ -84,4 +88,4 @@ class Keypoints2DLikelihood(ImageLikelihood):
                 - torch.log(nu * math.pi * s2)
                 - (nu + 2) / 2 * torch.log1p(d2 / (nu * s2))
             )
-        return (lp * obs.visible.transpose(0, 1).to(lp.device)).sum((-1, -2))
+        return (lp * visible).sum((-1, -2))
