@@ -233,10 +233,12 @@ class Camera:
         u = (js + 0.5) * self.width / w - 0.5
         v = (is_ + 0.5) * self.height / h - 0.5
         pix = np.stack([u, v], -1).reshape(-1, 1, 2).astype(np.float64)
-        dist = None if self.dist is None else self.dist.numpy()
-        xy = cv2.undistortPoints(pix, self.K.numpy(), dist).reshape(is_.shape + (2,))
+        # OpenCV works on host copies (the camera may sit on a GPU or hold learnable parameters)
+        K, R = (m.detach().cpu().double().numpy() for m in (self.K, self.R))
+        dist = None if self.dist is None else self.dist.detach().cpu().double().numpy()
+        xy = cv2.undistortPoints(pix, K, dist).reshape(is_.shape + (2,))
         d_cam = np.concatenate([xy, np.ones(is_.shape + (1,))], -1)
-        d_world = d_cam @ self.R.numpy()  # R^T d for row vectors
+        d_world = d_cam @ R  # R^T d for row vectors
         d_world /= np.linalg.norm(d_world, axis=-1, keepdims=True)
         return torch.from_numpy(d_world)
 

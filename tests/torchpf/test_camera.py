@@ -281,11 +281,16 @@ def test_bad_depth_camera_name(tmp_path):
         CameraRig([cam], depth_camera="nope")
 
 
-@pytest.mark.cuda
-def test_project_cuda():
+def test_project_follows_the_points_device_and_dtype(device, dtype):
     cam = random_camera(np.random.default_rng(7))
-    X = torch.randn(100, 3, dtype=torch.float64)
-    np.testing.assert_allclose(cam.project(X.cuda()).cpu().numpy(), cam.project(X).numpy(), atol=1e-9)
+    X = torch.randn(100, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    out = cam.project(X.to(device, dtype))
+    assert out.device.type == device.type and out.dtype == dtype
+    tol = 1e-9 if dtype == torch.float64 else 1e-3
+    np.testing.assert_allclose(out.cpu().double().numpy(), cam.project(X).numpy(), atol=tol, rtol=tol)
+    rig = CameraRig([cam]).to(device)
+    torch.testing.assert_close(rig.project(X.to(device, dtype))[..., 0, :], out)
+    assert rig[0].pixel_rays(12, 16).shape == (12, 16, 3)  # OpenCV on host copies of device tensors
 
 
 def test_learnable_rig_parameters(device):
