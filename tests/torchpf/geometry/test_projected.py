@@ -32,12 +32,17 @@ def test_project_capsules_radius_on_axis():
     assert not bool(behind.valid.any())
 
 
-def test_project_capsules_into_a_rig():
+def _rig_and_capsules():
+    """Three cameras and 5 poses of 4 random capsules (float64) in front of them."""
     rig = camera_ring(3, radius=4.0, width=160, height_px=120)
     g = torch.Generator().manual_seed(0)
     a = torch.randn(5, 4, 3, generator=g, dtype=torch.float64) * 0.3 + torch.tensor([0.0, 0.0, 1.0])
     b = a + torch.randn(5, 4, 3, generator=g, dtype=torch.float64) * 0.2
-    r = torch.full((4,), 0.05, dtype=torch.float64)
+    return rig, a, b, torch.full((4,), 0.05, dtype=torch.float64)
+
+
+def test_project_capsules_into_a_rig():
+    rig, a, b, r = _rig_and_capsules()
     caps = project_capsules(rig, a, b, r)
     assert caps.pa.shape == (5, 3, 4, 2) and caps.ra.shape == (5, 3, 4)
     for v, (cam, one) in enumerate(zip(rig.values(), caps.unbind(1), strict=True)):
@@ -208,11 +213,7 @@ def test_outline_points_lie_on_the_boundary():
 
 
 def test_projected_geometry_follows_the_device(device, dtype, generator):
-    rig = camera_ring(3, radius=4.0, width=160, height_px=120)
-    g = torch.Generator().manual_seed(0)
-    a = torch.randn(5, 4, 3, generator=g, dtype=torch.float64) * 0.3 + torch.tensor([0.0, 0.0, 1.0])
-    b = a + torch.randn(5, 4, 3, generator=g, dtype=torch.float64) * 0.2
-    r = torch.full((4,), 0.05, dtype=torch.float64)
+    rig, a, b, r = _rig_and_capsules()
     ref = project_capsules(rig, a, b, r)
     caps = project_capsules(rig.to(device), *(x.to(device, dtype) for x in (a, b, r)))
     rig.to("cpu")
