@@ -4,7 +4,7 @@ VENV := .venv
 VPY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-gpu lint bench clean
+.PHONY: demo test test-gpu check-wheel lint bench clean
 
 $(VPY):
 	$(PY) -m venv $(VENV)
@@ -26,6 +26,16 @@ test: $(STAMP)
 # the tests marked `cuda` (the device fixture's CUDA half among them); they skip where no GPU is present
 test-gpu: $(STAMP)
 	$(VPY) -m pytest -q -m cuda
+
+# the install-from-wheel check: build the wheel, install it (with OpenCV) into a fresh venv, run the README
+# quickstart and the console scripts from an empty folder outside the source tree
+WHEEL_DIR := build/wheel-check
+check-wheel:
+	rm -rf $(WHEEL_DIR) && $(PY) -m venv $(WHEEL_DIR)/venv
+	$(WHEEL_DIR)/venv/bin/python -m pip install -q torch==2.13.0
+	$(WHEEL_DIR)/venv/bin/python -m pip wheel -q --no-deps -w $(WHEEL_DIR)/dist .
+	$(WHEEL_DIR)/venv/bin/python -m pip install -q "$$(ls $(WHEEL_DIR)/dist/torchpf-*.whl)[opencv]"
+	run=$$(mktemp -d) && cd $$run && $(CURDIR)/$(WHEEL_DIR)/venv/bin/python $(CURDIR)/.ci/check_wheel.py $(CURDIR)/README.md
 
 lint: $(STAMP)
 	$(VPY) -m ruff format torchpf priors training tests benchmarks

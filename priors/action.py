@@ -431,7 +431,7 @@ class ActionModel(nn.Module):
         }
         arrays = {name: getattr(self, name).detach().cpu().numpy() for name in _REQUIRED}
         arrays["alpha"] = np.array(self.alpha)
-        arrays["revolute"] = self.revolute.numpy()
+        arrays["revolute"] = self.revolute.cpu().numpy()
         if self.training_data is not None:
             arrays["train_coords"] = self.training_data["coords"].numpy()
             arrays["train_lengths"] = self.training_data["lengths"].numpy()

@@ -28,8 +28,18 @@ Example::
 """
 
 from importlib import import_module
+from importlib.util import find_spec
 
-__version__ = "0.1.0"
+from torchpf._version import __version__ as __version__
+
+if find_spec("cv2") is None:  # either OpenCV distribution provides cv2; installing one is the user's choice
+    import warnings
+
+    warnings.warn(
+        "torchpf needs OpenCV (the cv2 module) for cameras, masks and sensors: install one of "
+        "`pip install 'torchpf[opencv]'` (opencv-python-headless) or `pip install opencv-python`",
+        stacklevel=2,
+    )
 
 # Public names resolved lazily so that `import torchpf` stays cheap and a heavy optional piece (OpenCV,
 # pytorch-kinematics) is only loaded when used.

@@ -34,7 +34,10 @@ class CliError(Exception):
 
 
 def _parser() -> argparse.ArgumentParser:
+    from torchpf._version import __version__
+
     ap = argparse.ArgumentParser(prog="python -m torchpf", description=__doc__.splitlines()[0])
+    ap.add_argument("--version", action="version", version=f"torchpf {__version__}")
     sub = ap.add_subparsers(dest="command", required=True)
 
     tr = sub.add_parser("track", help="track a sequence directory, write the estimated motion as CSV")

@@ -233,10 +233,12 @@ class Camera:
         u = (js + 0.5) * self.width / w - 0.5
         v = (is_ + 0.5) * self.height / h - 0.5
         pix = np.stack([u, v], -1).reshape(-1, 1, 2).astype(np.float64)
-        dist = None if self.dist is None else self.dist.numpy()
-        xy = cv2.undistortPoints(pix, self.K.numpy(), dist).reshape(is_.shape + (2,))
+        # OpenCV works on host copies (the camera may sit on a GPU or hold learnable parameters)
+        K, R = (m.detach().cpu().double().numpy() for m in (self.K, self.R))
+        dist = None if self.dist is None else self.dist.detach().cpu().double().numpy()
+        xy = cv2.undistortPoints(pix, K, dist).reshape(is_.shape + (2,))
         d_cam = np.concatenate([xy, np.ones(is_.shape + (1,))], -1)
-        d_world = d_cam @ self.R.numpy()  # R^T d for row vectors
+        d_world = d_cam @ R  # R^T d for row vectors
         d_world /= np.linalg.norm(d_world, axis=-1, keepdims=True)
         return torch.from_numpy(d_world)
 
@@ -332,7 +334,14 @@ class CameraRig(nn.Module):
     ``depth_camera``.
 
     A rig also reads as an ordered mapping name -> :class:`Camera` (``rig["cam0"]``, ``rig[0]``, ``list(rig)``
-    the names, ``rig.values()``, ``len(rig)``); each look-up builds a :class:`Camera` from the buffers.
+    the names, ``rig.values()``, ``len(rig)``); each look-up builds a :class:`Camera` whose tensors are views
+    of the rig's, so an in-place edit (``rig["cam0"].K[0, 0] = 500``) changes the rig and every likelihood
+    that holds it.
+
+    Learning: ``learnable=True`` (or a subset of ``("K", "R", "t", "dist")``) makes those ``nn.Parameter`` s
+    (K (V, 3, 3) as a whole: mask its gradient to fit only the focal lengths). A learnable rotation is
+    ``R = exp([w]_x) R_0`` with ``w`` the parameter ``rotation_update`` (V, 3) (rad, axis-angle, starting at
+    0) and ``R_0`` the buffer ``R_init``; ``rig.R`` always reads the current rotation.
 
     Example::
 
@@ -342,7 +351,11 @@ class CameraRig(nn.Module):
     """
 
     def __init__(
-        self, cameras: Mapping[str, Camera] | Iterable[Camera] = (), depth_camera: str | None = None
+        self,
+        cameras: Mapping[str, Camera] | Iterable[Camera] = (),
+        depth_camera: str | None = None,
+        *,
+        learnable: bool | Sequence[str] = False,
     ):
         super().__init__()
         if isinstance(cameras, Mapping):
@@ -359,10 +372,11 @@ class CameraRig(nn.Module):
         if depth_camera is not None and depth_camera not in names:
             raise ValueError(f"depth_camera {depth_camera!r} is not one of {names}")
         if cams:
-            K = torch.stack([c.K for c in cams]).double()
-            R = torch.stack([c.R for c in cams]).to(K)
-            t = torch.stack([c.t for c in cams]).to(K)
-            dist = torch.stack([K.new_zeros(5) if c.dist is None else c.dist.to(K) for c in cams])
+            # a new rig holds copies (cut from any graph of the cameras it is built from)
+            K = torch.stack([c.K.detach() for c in cams]).double()
+            R = torch.stack([c.R.detach() for c in cams]).to(K)
+            t = torch.stack([c.t.detach() for c in cams]).to(K)
+            dist = torch.stack([K.new_zeros(5) if c.dist is None else c.dist.detach().to(K) for c in cams])
         else:
             K, R = torch.zeros(0, 3, 3, dtype=torch.float64), torch.zeros(0, 3, 3, dtype=torch.float64)
             t, dist = torch.zeros(0, 3, dtype=torch.float64), torch.zeros(0, 5, dtype=torch.float64)
@@ -370,6 +384,7 @@ class CameraRig(nn.Module):
             names, [(c.width, c.height) for c in cams], [c.dist is not None for c in cams], K, R, t, dist
         )
         self.depth_camera = depth_camera
+        self._make_learnable(learnable)
 
     def _set(self, names, sizes, has_dist, K, R, t, dist) -> None:
         self.names = list(names)
@@ -379,6 +394,32 @@ class CameraRig(nn.Module):
         self.register_buffer("R", R)
         self.register_buffer("t", t)
         self.register_buffer("dist", dist)
+
+    def _make_learnable(self, learnable: bool | Sequence[str]) -> None:
+        names = (
+            ("K", "R", "t", "dist") if learnable is True else () if learnable is False else tuple(learnable)
+        )
+        unknown = set(names) - {"K", "R", "t", "dist"}
+        if unknown:
+            raise ValueError(f"learnable camera parameters are K, R, t, dist; got {sorted(unknown)}")
+        for name in names:
+            value = self._buffers.pop(name)
+            if name == "R":
+                self.register_buffer("R_init", value)
+                self.rotation_update = nn.Parameter(value.new_zeros(value.shape[:-1]))
+            else:
+                self.register_parameter(name, nn.Parameter(value))
+        if "dist" in names:
+            self.has_dist = [True] * len(self.names)  # a learnable distortion is applied to every camera
+
+    def __getattr__(self, name: str):
+        if name == "R" and "rotation_update" in self._parameters:
+            w = self._parameters["rotation_update"]
+            skew = torch.zeros(*w.shape, 3, dtype=w.dtype, device=w.device)
+            skew[..., 0, 1], skew[..., 0, 2], skew[..., 1, 2] = -w[..., 2], w[..., 1], -w[..., 0]
+            skew = skew - skew.transpose(-1, -2)
+            return torch.linalg.matrix_exp(skew) @ self._buffers["R_init"]
+        return super().__getattr__(name)
 
     # ------------------------------------------------------------------ mapping of cameras
     def __len__(self) -> int:
@@ -394,8 +435,8 @@ class CameraRig(nn.Module):
         """The camera named ``key`` (or at index ``key`` of the V axis), built from the buffers."""
         v = key if isinstance(key, int) else self.index(key)
         w, h = self.sizes[v]
-        dist = self.dist[v].clone() if self.has_dist[v] else None
-        return Camera(self.K[v].clone(), self.R[v].clone(), self.t[v].clone(), dist, w, h, self.names[v])
+        dist = self.dist[v] if self.has_dist[v] else None
+        return Camera(self.K[v], self.R[v], self.t[v], dist, w, h, self.names[v])
 
     def index(self, name: str) -> int:
         """Position of camera ``name`` on the V axis (KeyError if there is none)."""

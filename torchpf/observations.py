@@ -54,6 +54,41 @@ def _to_tensor(x, dtype=torch.float32) -> torch.Tensor:
     return torch.as_tensor(arr, dtype=dtype)
 
 
+def _valid(valid, shape: tuple[int, ...], what: str) -> torch.Tensor:
+    """(..., V) bool flags of the cameras: all True by default, a (V,) vector shared by a batch."""
+    if valid is None:
+        return torch.ones(shape, dtype=torch.bool)
+    valid = torch.as_tensor(valid, dtype=torch.bool)
+    if valid.shape != shape and valid.shape == shape[-1:]:
+        valid = valid.expand(shape)
+    if valid.shape != shape:
+        raise ValueError(
+            f"valid must have shape {shape} (the {what}' leading dims), got {tuple(valid.shape)}"
+        )
+    return valid
+
+
+def gaussian_blur(images: torch.Tensor, sigma: float) -> torch.Tensor:
+    """(..., H, W) images smoothed by a Gaussian of ``sigma`` pixels, on their device and in their dtype.
+
+    Separable kernel of ``2 ceil(3 sigma) + 1`` taps normalised to sum 1, borders mirrored without repeating
+    the edge pixel (OpenCV's default ``BORDER_REFLECT_101``; an image narrower than the kernel's half
+    width repeats its edge instead), i.e. what ``cv2.GaussianBlur(img, (k, k), sigma)`` computes.
+    """
+    half = int(math.ceil(3 * sigma))
+    x = images.float() if not images.is_floating_point() else images
+    taps = torch.arange(-half, half + 1, dtype=torch.float64, device=x.device)
+    kernel = torch.exp(-0.5 * (taps / sigma) ** 2)
+    kernel = (kernel / kernel.sum()).to(x.dtype)
+    flat = x.reshape(-1, 1, *x.shape[-2:])
+    H, W = flat.shape[-2:]
+    mode = "reflect" if half < min(H, W) else "replicate"
+    flat = torch.nn.functional.pad(flat, (half, half, half, half), mode=mode)
+    flat = torch.nn.functional.conv2d(flat, kernel.reshape(1, 1, 1, -1))
+    flat = torch.nn.functional.conv2d(flat, kernel.reshape(1, 1, -1, 1))
+    return flat.reshape(x.shape)
+
+
 @dataclass(eq=False)
 class PointCloud:
     """World points of one frame from a depth sensor.
@@ -74,8 +109,10 @@ class Silhouettes:
     """Foreground masks of one frame, one per camera.
 
     Fields:
-        masks: (V, H, W) foreground in [0, 1] (bool, 0/1 or 0/255 uint8 accepted; 255 is rescaled).
-        valid: (V,) bool, False for a camera whose frame is missing (its terms are skipped).
+        masks: (V, H, W) foreground in [0, 1] (bool, 0/1 or 0/255 uint8 accepted; 255 is rescaled), or
+            (..., V, H, W) for a batch of independent sequences: the leading dims then match the particles'
+            (``(B, V, H, W)`` masks go with ``(B, N, D)`` particles), as a batched :class:`PointCloud`.
+        valid: (V,) or (..., V) bool, False for a camera whose frame is missing (its terms are skipped).
 
     Derived (cached): :meth:`blurred` soft masks for smooth look-ups, :meth:`foreground_samples` fixed
     stratified points on the foreground (dual silhouette cue), :meth:`area` foreground pixel counts.
@@ -92,17 +129,10 @@ class Silhouettes:
             m = m / 255.0
         if m.ndim == 2:
             m = m[None]
-        if m.ndim != 3:
-            raise ValueError(f"masks must have shape (V, H, W), got {tuple(m.shape)}")
+        if m.ndim < 3:
+            raise ValueError(f"masks must have shape (V, H, W) or (..., V, H, W), got {tuple(m.shape)}")
         self.masks = m
-        V = m.shape[0]
-        self.valid = (
-            torch.ones(V, dtype=torch.bool)
-            if self.valid is None
-            else torch.as_tensor(self.valid, dtype=torch.bool)
-        )
-        if self.valid.shape != (V,):
-            raise ValueError(f"valid must have shape ({V},), got {tuple(self.valid.shape)}")
+        self.valid = _valid(self.valid, tuple(m.shape[:-2]), "masks")
 
     @property
     def height(self) -> int:
@@ -114,26 +144,20 @@ class Silhouettes:
 
     def blurred(self, sigma: float) -> torch.Tensor:
         """(V, H, W) masks smoothed by a Gaussian of ``sigma`` pixels (0: the masks themselves). A bilinear
-        look-up in it is a smooth function of the point, which gives the silhouette cue a gradient."""
-        key = ("blur", float(sigma))
-        if key not in self._cache:
-            if sigma <= 0:
-                out = self.masks
-            else:
-                import cv2
+        look-up in it is a smooth function of the point, which gives the silhouette cue a gradient.
 
-                k = 2 * int(math.ceil(3 * sigma)) + 1
-                out = torch.stack(
-                    [torch.from_numpy(cv2.GaussianBlur(m.numpy(), (k, k), sigma)) for m in self.masks.float()]
-                ).to(self.masks.dtype)
-            self._cache[key] = out
+        Computed in torch on the masks' device and dtype (separable kernel of ``2 ceil(3 sigma) + 1`` taps,
+        mirrored borders: the same numbers as ``cv2.GaussianBlur``), so GPU masks never leave the GPU."""
+        key = ("blur", float(sigma), self.masks.device, self.masks.dtype)
+        if key not in self._cache:
+            self._cache[key] = gaussian_blur(self.masks, sigma) if sigma > 0 else self.masks
         return self._cache[key]
 
     def area(self) -> torch.Tensor:
-        """(V,) foreground area in pixels (sum of the mask)."""
-        if "area" not in self._cache:
-            self._cache["area"] = self.masks.sum((-1, -2))
-        return self._cache["area"]
+        """(..., V) foreground area in pixels (sum of the mask)."""
+        if ("area", self.masks.device) not in self._cache:
+            self._cache[("area", self.masks.device)] = self.masks.sum((-1, -2))
+        return self._cache[("area", self.masks.device)]
 
     def outside_distance(self) -> torch.Tensor:
         """(V, H, W) distance (pixels) from each pixel centre to the foreground (mask > 0.5), 0 inside; its
@@ -155,22 +179,27 @@ class Silhouettes:
         silhouette evenly without aliasing with the row length.
 
         Returns:
-            points (V, n, 2) pixel coordinates (u, v); ok (V,) bool, False for an empty or invalid mask.
+            points (..., V, n, 2) pixel coordinates (u, v); ok (..., V) bool, False for an empty or invalid
+            mask.
         """
-        key = ("samples", int(n))
+        key = ("samples", int(n), self.masks.device)
         if key not in self._cache:
-            V = self.masks.shape[0]
-            pts = torch.zeros(V, n, 2)
-            ok = torch.zeros(V, dtype=torch.bool)
-            golden = torch.frac(0.5 + torch.arange(n, dtype=torch.float64) * (math.sqrt(5) - 1) / 2)
-            for v in range(V):
-                ys, xs = torch.nonzero(self.masks[v] > 0.5, as_tuple=True)
-                if len(xs) == 0 or not bool(self.valid[v]):
+            masks = self.masks.reshape(-1, *self.masks.shape[-2:])
+            valid = self.valid.reshape(-1)
+            device = masks.device
+            pts = torch.zeros(len(masks), n, 2, device=device)
+            ok = torch.zeros(len(masks), dtype=torch.bool, device=device)
+            golden = torch.frac(
+                0.5 + torch.arange(n, dtype=torch.float64, device=device) * (math.sqrt(5) - 1) / 2
+            )
+            for v in range(len(masks)):  # once per frame and camera, cached
+                ys, xs = torch.nonzero(masks[v] > 0.5, as_tuple=True)
+                if len(xs) == 0 or not bool(valid[v]):
                     continue
                 idx = (golden * len(xs)).long().clamp_max(len(xs) - 1)
                 pts[v] = torch.stack([xs[idx], ys[idx]], -1).float()
                 ok[v] = True
-            self._cache[key] = (pts, ok)
+            self._cache[key] = (pts.reshape(*self.masks.shape[:-2], n, 2), ok.reshape(self.valid.shape))
         return self._cache[key]
 
 
@@ -180,8 +209,8 @@ class Keypoints2D:
 
     Fields:
         uv: (V, J, 2) pixel coordinates per camera, in the order of the likelihood's ``joints``; NaN marks
-            a missing detection.
-        visible: optional (V, J) bool; False also marks a missing detection.
+            a missing detection. (..., V, J, 2) for a batch of sequences (leading dims as the particles').
+        visible: optional (..., V, J) bool; False also marks a missing detection.
     """
 
     uv: torch.Tensor
@@ -191,8 +220,8 @@ class Keypoints2D:
         self.uv = _to_tensor(self.uv)
         if self.uv.ndim == 2:
             self.uv = self.uv[None]
-        if self.uv.ndim != 3 or self.uv.shape[-1] != 2:
-            raise ValueError(f"uv must have shape (V, J, 2), got {tuple(self.uv.shape)}")
+        if self.uv.ndim < 3 or self.uv.shape[-1] != 2:
+            raise ValueError(f"uv must have shape (V, J, 2) or (..., V, J, 2), got {tuple(self.uv.shape)}")
         vis = ~torch.isnan(self.uv).any(-1)
         if self.visible is not None:
             vis = vis & torch.as_tensor(self.visible, dtype=torch.bool).reshape(vis.shape)
@@ -205,8 +234,9 @@ class DistanceMaps:
     """Per-camera distance images (pixels): distance to the nearest skin blob (Fontmarty §3.2.3) or to the
     nearest edge (Chamfer matching, Brubaker eq. 9).
 
-    Fields: ``distance`` (V, H, W) float pixels; ``valid`` (V,) bool. Build with :meth:`from_features`
-    (binary feature masks: skin blobs, edges) or :meth:`from_edges_of` (grey or colour images, Canny).
+    Fields: ``distance`` (V, H, W) float pixels, or (..., V, H, W) for a batch of sequences (leading dims as
+    the particles'); ``valid`` (V,) or (..., V) bool. Build with :meth:`from_features` (binary feature masks:
+    skin blobs, edges) or :meth:`from_edges_of` (grey or colour images, Canny).
     """
 
     distance: torch.Tensor
@@ -216,12 +246,7 @@ class DistanceMaps:
         self.distance = _to_tensor(self.distance)
         if self.distance.ndim == 2:
             self.distance = self.distance[None]
-        V = self.distance.shape[0]
-        self.valid = (
-            torch.ones(V, dtype=torch.bool)
-            if self.valid is None
-            else torch.as_tensor(self.valid, dtype=torch.bool)
-        )
+        self.valid = _valid(self.valid, tuple(self.distance.shape[:-2]), "distance images")
 
     @classmethod
     def from_features(cls, features, valid=None) -> DistanceMaps:

@@ -207,7 +207,40 @@ class Tracker(nn.Module):
         self.dtype = dtype
         self.progress = progress
         self.filter = self._build_filter()
-        self.to(self.device)
+        self.to(self.device)  # the modules follow the particles' device
+
+    def to(self, *args, **kwargs) -> Tracker:
+        """Move the computation: ``tracker.to("cuda")``, ``.to(torch.float64)``, ``.to(device, dtype)``.
+
+        The device moves every submodule (skeleton, likelihoods, cameras, dynamics) and sets
+        :attr:`device`, where the particles and the run's generator then live; a dtype sets :attr:`dtype`,
+        the particles' precision. Buffers keep their own (float64) precision and are cast per call to the
+        particles' dtype, so ``.to(torch.float32)`` loses nothing (learnable parameters included: they stay
+        in their precision and the cast is part of the graph).
+        """
+        device, dtype, non_blocking, _ = torch._C._nn._parse_to(*args, **kwargs)
+        if dtype is not None:
+            if not dtype.is_floating_point:
+                raise TypeError(f"Tracker.to only accepts floating dtypes, got {dtype}")
+            self.dtype = dtype
+        if device is not None:
+            self.device = torch.device(device)
+            if self.device.type == "cuda" and self.device.index is None:
+                self.device = torch.device("cuda", torch.cuda.current_device())
+            super().to(device=self.device, non_blocking=non_blocking)
+        return self
+
+    def cuda(self, device: int | torch.device | None = None) -> Tracker:
+        return self.to(torch.device("cuda", device) if isinstance(device, int) else device or "cuda")
+
+    def cpu(self) -> Tracker:
+        return self.to("cpu")
+
+    def double(self) -> Tracker:
+        return self.to(torch.float64)
+
+    def float(self) -> Tracker:
+        return self.to(torch.float32)
 
     @classmethod
     def from_config(

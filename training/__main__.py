@@ -178,7 +178,10 @@ def _export(args: argparse.Namespace) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``python -m training`` parser; each subcommand sets ``func(args) -> exit status``."""
+    from torchpf._version import __version__
+
     parser = argparse.ArgumentParser(prog=PROG, description="Mocap conversion and action-model training.")
+    parser.add_argument("--version", action="version", version=f"torchpf {__version__}")
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     convert = commands.add_parser(

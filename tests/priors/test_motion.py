@@ -272,19 +272,17 @@ def test_projected_prior_log_prob_is_the_embedding_gaussian(f22):
     torch.testing.assert_close(f22.fk(still), f22.fk(x_old), atol=1e-6, rtol=0)
 
 
-@pytest.mark.cuda
-def test_priors_follow_the_particles_device():
-    f22 = Skeleton.from_urdf(path("fontmarty22.urdf")).cuda()  # own copy: the fixture stays on the CPU
-    x = f22.clamp(torch.zeros(64, len(f22.dof_names))).cuda()
-    g = torch.Generator(device="cuda").manual_seed(0)
-    walk = AngularRandomWalk.from_skeleton(f22).cuda()
-    y = walk.sample(x, g)
-    assert y.device.type == "cuda" and torch.isfinite(walk.log_prob(y, x)).all()
-    cv = ConstantVelocity(0.1).cuda()
-    z = cv.sample(x, g, extras=cv.init_extras(x))
-    assert z.device.type == "cuda"
-    p = ProjectedGaussian(f22, 0.03).sample(x, g)
-    assert p.device.type == "cuda" and f22.within_limits(p).all()
+def test_priors_follow_the_particles_device(device, dtype, generator):
+    f22 = Skeleton.from_urdf(path("fontmarty22.urdf")).to(device)  # own copy: the fixture stays on the CPU
+    x = f22.clamp(torch.zeros(64, len(f22.dof_names), dtype=dtype, device=device))
+    walk = AngularRandomWalk.from_skeleton(f22).to(device)
+    y = walk.sample(x, generator)
+    assert y.device.type == device.type and y.dtype == dtype and torch.isfinite(walk.log_prob(y, x)).all()
+    cv = ConstantVelocity(0.1).to(device)
+    z = cv.sample(x, generator, extras=cv.init_extras(x))
+    assert z.device.type == device.type and z.dtype == dtype
+    p = ProjectedGaussian(f22, 0.03).sample(x, generator)
+    assert p.device.type == device.type and p.dtype == dtype and f22.within_limits(p).all()
 
 
 def test_every_prior_is_a_dynamics_with_one_signature(human):

@@ -206,3 +206,20 @@ def test_angular_rejection_counts_and_caps(scene):
     assert acc.any() and inside[acc].all()
     assert (d.rejections[~d.accepted] == 200).all()
     torch.testing.assert_close(d.log_q, walk.log_prob(d.x, parents))
+
+
+@pytest.mark.parametrize("backend", ["cdist", "kdtree"])
+def test_guided_proposals_follow_the_particles_device(scene, device, dtype, backend):
+    skel, cams, _, frame, parents = scene
+    moved = Skeleton.from_urdf(path("fontmarty22.urdf")).to(device)  # own copy: the fixture stays on the CPU
+    x = parents.to(device, dtype)
+    g = torch.Generator(device=device).manual_seed(1)
+    for q in (
+        SilhouetteGuided(moved, cams, joint_sigma=0.03, max_tries=10).to(device),
+        DepthGuided(moved, cams, joint_sigma=0.03, max_tries=10, backend=backend).to(device),
+    ):
+        d = q.draw(x, frame, g)  # the frame stays on the CPU: the proposals move what they read
+        for t in (d.x, d.log_q, d.joints):
+            assert t.device.type == device.type and t.dtype == dtype, type(q).__name__
+        assert d.accepted.device.type == device.type and d.accepted.float().mean() > 0.5
+        assert moved.within_limits(d.x).all()

@@ -281,8 +281,32 @@ def test_bad_depth_camera_name(tmp_path):
         CameraRig([cam], depth_camera="nope")
 
 
-@pytest.mark.cuda
-def test_project_cuda():
+def test_project_follows_the_points_device_and_dtype(device, dtype):
     cam = random_camera(np.random.default_rng(7))
-    X = torch.randn(100, 3, dtype=torch.float64)
-    np.testing.assert_allclose(cam.project(X.cuda()).cpu().numpy(), cam.project(X).numpy(), atol=1e-9)
+    X = torch.randn(100, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    out = cam.project(X.to(device, dtype))
+    assert out.device.type == device.type and out.dtype == dtype
+    tol = 1e-9 if dtype == torch.float64 else 1e-3
+    np.testing.assert_allclose(out.cpu().double().numpy(), cam.project(X).numpy(), atol=tol, rtol=tol)
+    rig = CameraRig([cam]).to(device)
+    torch.testing.assert_close(rig.project(X.to(device, dtype))[..., 0, :], out)
+    assert rig[0].pixel_rays(12, 16).shape == (12, 16, 3)  # OpenCV on host copies of device tensors
+
+
+def test_learnable_rig_parameters(device):
+    rig = camera_ring(3, width=160, height_px=120)
+    fitted = CameraRig(rig, learnable=True).to(device)
+    assert {n for n, _ in fitted.named_parameters()} == {"K", "rotation_update", "t", "dist"}
+    x = torch.randn(7, 3, dtype=torch.float64, device=device)
+    torch.testing.assert_close(fitted.project(x).cpu(), rig.project(x.cpu()))
+    fitted.resized(80, 60).project(x).square().sum().backward()  # through the resized intrinsics too
+    assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in fitted.parameters())
+    with torch.no_grad():
+        fitted.rotation_update[1] = torch.tensor([0.1, -0.2, 0.3])
+    R = fitted.R  # the current rotation, exp([w]x) R_0: still a rotation
+    eye = torch.eye(3, dtype=R.dtype, device=device).expand(3, 3, 3)
+    torch.testing.assert_close(R @ R.transpose(-1, -2), eye)
+    torch.testing.assert_close(fitted[1].R, R[1])
+    assert not torch.allclose(R[1].cpu(), rig.R[1]) and torch.equal(R[0].cpu(), rig.R[0])
+    with pytest.raises(ValueError, match="learnable"):
+        CameraRig(rig, learnable=["f"])

@@ -97,3 +97,15 @@ def test_marker_to_skin_and_angle_mse():
     assert float(metrics.angle_mse(truth, est, torch.tensor([True, True, False]))) == pytest.approx(
         (wrapped + 0.01) / 2, rel=1e-5
     )
+
+
+def test_metrics_follow_the_device(device, dtype):
+    gen = torch.Generator().manual_seed(0)
+    truth = torch.randn(7, 5, 3, generator=gen, dtype=torch.float64)
+    est = truth + 0.2 * torch.randn(4, 7, 5, 3, generator=gen, dtype=torch.float64)
+    ref = metrics.evaluate(truth, est)
+    got = metrics.evaluate(truth.to(device, dtype), est.to(device, dtype))
+    for key, value in got.items():
+        value = torch.as_tensor(value)
+        assert value.device.type in (device.type, "cpu")
+        assert float(value) == pytest.approx(float(ref[key]), rel=1e-5), key

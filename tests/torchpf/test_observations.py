@@ -31,3 +31,17 @@ def test_keypoints_and_pointcloud_containers():
     assert kp.visible.tolist() == [[True, False]] and not torch.isnan(kp.uv).any()
     with pytest.raises(ValueError, match="shape"):
         PointCloud(torch.zeros(5, 2))
+
+
+@pytest.mark.parametrize("sigma", [0.5, 1.0, 2.5])
+def test_blur_is_opencvs_gaussian_in_torch(sigma, device, dtype):
+    import cv2
+
+    masks = (np.random.default_rng(0).random((3, 24, 30)) > 0.6).astype(np.float32)
+    k = 2 * int(np.ceil(3 * sigma)) + 1
+    expected = np.stack([cv2.GaussianBlur(m, (k, k), sigma) for m in masks])
+    obs = Silhouettes(torch.from_numpy(masks).to(device, dtype))
+    out = obs.blurred(sigma)
+    assert out.device.type == device.type and out.dtype == dtype and out is obs.blurred(sigma)
+    np.testing.assert_allclose(out.cpu().double().numpy(), expected, atol=1e-6)
+    assert obs.foreground_samples(16)[0].device.type == device.type

@@ -104,3 +104,26 @@ def test_icondensation_validates_its_weights():
         ICondensationProposal(dyn, pi, None, alpha=0.3, beta=0.5)  # p0 needed for the remaining 0.2
     q = ICondensationProposal(dyn, pi, None, alpha=0.4, beta=0.6)
     assert math.isclose(q.rest, 0.0, abs_tol=1e-12)
+
+
+def test_gaussians_follow_the_particles_device(device, dtype, generator):
+    A = torch.tensor([[0.9, 0.2], [0.0, 0.5]], dtype=F64)
+    Q = torch.tensor([[0.3, 0.1], [0.1, 0.2]], dtype=F64)
+    x = torch.randn(3, 50, 2, generator=_g(0), dtype=F64).to(device, dtype)
+    for dyn in (LinearGaussianDynamics(A, Q).to(device), GaussianRandomWalk(torch.tensor([0.1, 0.2]))):
+        y = dyn.sample(x, generator)
+        lp = dyn.log_prob(y, x)
+        assert y.device.type == device.type and y.dtype == dtype and lp.shape == (3, 50)
+        assert lp.device.type == device.type and torch.isfinite(lp).all()
+    q = ICondensationProposal(
+        GaussianRandomWalk(0.1),
+        ObservationGaussian(lambda o: o, 0.5),
+        Gaussian(0.0, 2.0),
+        alpha=0.2,
+        beta=0.7,
+    )
+    state = ParticleState(
+        x, torch.zeros(3, 50, dtype=dtype, device=device), torch.zeros(3, dtype=dtype, device=device)
+    )
+    new, log_q = q.sample(state, torch.zeros(3, 1, 2, dtype=dtype, device=device), generator)
+    assert new.device.type == device.type and new.dtype == dtype and torch.isfinite(log_q).all()

@@ -202,3 +202,41 @@ def test_auto_temperature_sets_the_first_frame_survival_rate(scene):
         Tracker(skel, cams, temperature="hot", **kwargs)
     fixed = Tracker(skel, cams, temperature=0.5, **kwargs)
     assert float(fixed.track(seq, seed=0).stats["temperature"]) == 0.5
+
+
+def test_to_moves_the_computation(scene, device, dtype):
+    skel, cams, seq, angles = scene
+    tracker = Tracker(skel, cams, likelihood="silhouette", dynamics=walk(), filter="sir", n_particles=200)
+    tracker.progress = tracker.filter.progress = False
+    assert tracker.to(device) is tracker and tracker.to(dtype) is tracker
+    assert tracker.device.type == device.type and tracker.dtype == dtype
+    assert all(b.device.type == device.type for b in tracker.buffers())
+    x0 = tracker.initial_particles(angles[0], torch.Generator(device=device).manual_seed(0))
+    assert x0.device.type == device.type and x0.dtype == dtype
+    # a CPU generator drives a run on any device (a generator there is derived from it)
+    result = tracker.track(seq, generator=torch.Generator().manual_seed(0))
+    assert not result.failed.any() and torch.isfinite(result.angles).all()
+    truth = skel.fk(angles)
+    error = float(metrics.mpjpe(truth, skel.fk(result.angles)))
+    static = float(metrics.mpjpe(truth, skel.fk(angles[:1].expand_as(angles))))
+    assert error < 0.5 * static, (error, static)
+    tracker.cpu().float()
+    assert tracker.device == torch.device("cpu") and tracker.dtype == torch.float32
+    with pytest.raises(TypeError, match="floating"):
+        tracker.to(torch.int64)
+
+
+@pytest.mark.parametrize("name", ["sir", "qrs", "apf", "partitioned", "mcmc"])
+def test_a_run_draws_only_from_its_own_generator(scene, name):
+    """A second CPU generator (the global one) must not be touched: code that forgets to pass the
+    generator would draw from it, and the track would then change with the global seed."""
+    skel, cams, seq, _ = scene
+    tracker = Tracker(skel, cams, likelihood="silhouette", filter=name, n_particles=150, fps=15.0)
+    tracker.filter.progress = False
+    torch.manual_seed(1)
+    state = torch.get_rng_state()
+    a = tracker.to(torch.float64).track(seq, generator=torch.Generator().manual_seed(4))
+    assert torch.equal(torch.get_rng_state(), state)
+    torch.manual_seed(2)
+    b = tracker.track(seq, generator=torch.Generator().manual_seed(4))
+    assert torch.equal(a.angles, b.angles) and a.log_evidence == b.log_evidence

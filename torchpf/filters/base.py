@@ -178,7 +178,7 @@ class ParticleFilter(nn.Module):
 
         Returns:
             the state at ``t``, with ``info`` = ``failed``, ``resampled``, ``log_evidence_increment`` (each
-            ``(...)``). Gradients flow as the caller's grad mode says (:meth:`run` uses ``no_grad``).
+            ``(...)``). Gradients flow as the caller's grad mode says (:meth:`run`: ``grad=False``).
         """
         new, _, _ = self._sir_step(state, obs, generator)
         return new
@@ -190,8 +190,9 @@ class ParticleFilter(nn.Module):
         generator: torch.Generator | int | None = None,
         *,
         extras: Mapping[str, Tensor] | None = None,
+        grad: bool = False,
     ) -> Track:
-        """Filter a whole sequence: ``init(x0)`` then one :meth:`step` per observation (under ``no_grad``).
+        """Filter a whole sequence: ``init(x0)`` then one :meth:`step` per observation.
 
         Args:
             observations: iterable over frames (a list, or a tensor whose first dim is ``T``); each item is
@@ -201,6 +202,16 @@ class ParticleFilter(nn.Module):
             generator: randomness, a generator or a seed; the same seed gives the same track. A generator on
                 another device than ``x0`` seeds one there (:func:`torchpf.distributions.as_generator`).
             extras: initial per-particle extras (see :meth:`init`).
+            grad: keep the autograd graph (default: run under ``no_grad``). The track's tensors are then
+                differentiable in the likelihood's and the dynamics' parameters (and ``x0``) with the
+                random numbers and the resampling indices held fixed: ``log_evidence.backward()`` gives the
+                gradient of ``log p_hat(z_{1:T})`` along this realisation, where the weights carried
+                through a frame without resampling keep their dependence and a resampling resets it (the
+                ancestor indices are not differentiated; no differentiable resampling). Without
+                resampling (``ess_threshold=0``) it is the exact gradient of the importance-sampling
+                estimate; with it, a biased but low-variance estimate of the score, good enough to fit
+                a few scale parameters (Poyiadjis et al. 2011 discuss the bias). The filters' MCMC moves
+                and annealing schedules are computed without gradient.
 
         Returns:
             a :class:`~torchpf.filters.state.Track`.
@@ -209,7 +220,7 @@ class ParticleFilter(nn.Module):
         means, maps, ess, incs, failed, resampled = [], [], [], [], [], []
         stats: dict[str, list[Tensor]] = {}
         generator = as_generator(generator, x0.device)
-        with torch.no_grad():
+        with torch.set_grad_enabled(grad):
             state = self.init(x0, extras)
             bar = tqdm(observations, total=total, desc=type(self).__name__, disable=not self.progress)
             for obs in bar:

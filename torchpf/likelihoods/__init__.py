@@ -37,6 +37,15 @@ Image terms hold their cameras as a :class:`~torchpf.camera.CameraRig` (buffers 
 work in the observation's pixel grid: masks may be smaller than the camera images (the rig is resized to
 them), which is how 640x480 cameras are scored on 160x120 masks.
 
+A batch of S independent sequences: ``(S, N, D)`` poses with one frame per sequence, ``(S, V, H, W)`` masks
+or distance images, ``(S, V, J, 2)`` keypoints, ``(S, K, 3)`` clouds (:meth:`Body.rows` aligns them; the
+images are looked up per sequence, never copied per particle).
+
+Learning: scale parameters (``sigma``, the overlap's ``beta``, a product's exponents) are buffers, or
+``nn.Parameter`` s with ``learnable=True``; image cues hold a given :class:`~torchpf.camera.CameraRig` by
+reference, so a rig built with ``learnable=["K"]`` is fitted through them (``ParticleFilter.run(...,
+grad=True)`` differentiates the log-evidence).
+
 Sampling: the model points of the silhouette cues come from a **fixed quasi-random pattern**
 (:func:`torchpf.geometry.sample_pattern`) mapped into every projected capsule, and the dual cue uses
 fixed stratified foreground points (:meth:`Silhouettes.foreground_samples`). Likelihoods are therefore

@@ -65,6 +65,29 @@ class Body:
         radii = skeleton.radii.to(device=joints.device, dtype=joints.dtype)
         return cls(flat, batch, joints, joints[:, bone_index.to(joints.device)], radii)
 
+    def rows(self, t: torch.Tensor, event_dims: int) -> torch.Tensor:
+        """An observation tensor ``(*obs_batch, *event)`` aligned with the B flattened poses: ``(B, *event)``.
+
+        ``obs_batch`` (a batch of independent sequences) must be a prefix of :attr:`batch`, e.g. ``(S,)``
+        observations for ``(S, N, D)`` poses; each pose gets its sequence's entry. Without leading dims
+        ``t`` is returned as is (one observation shared by every pose broadcasts).
+        """
+        lead = t.ndim - event_dims
+        if lead <= 0:
+            return t
+        self.check_batch(t.shape[:lead])
+        event = t.shape[lead:]
+        t = t.reshape(*t.shape[:lead], *[1] * (len(self.batch) - lead), *event).expand(*self.batch, *event)
+        return t.reshape(-1, *event)
+
+    def check_batch(self, obs_batch: Sequence[int]) -> None:
+        """Raise unless a batched observation's leading dims ``obs_batch`` are a prefix of the poses'."""
+        if tuple(self.batch[: len(obs_batch)]) != tuple(obs_batch):
+            raise ValueError(
+                f"observations batched as {tuple(obs_batch)} do not match the poses' leading dims "
+                f"{tuple(self.batch)}: a batch of sequences needs (S, ...) observations for (S, N, D) poses"
+            )
+
     def capsules(self, bones: Sequence[int] | None = None):
         """Capsule ends ``a``, ``b`` (B, C', 3) and radii (C',) of all bones or of the subset ``bones``."""
         ends, radii = self.ends, self.radii
@@ -83,7 +106,15 @@ class Likelihood(nn.Module):
     Args:
         skeleton: anything :meth:`Body.of` accepts, normally a :class:`torchpf.Skeleton`.
         bones: optional subset of capsule indices the cue scores (e.g. one partition's limbs).
+
+    Scale parameters (a cue's ``sigma``, the overlap's ``beta``) are 0-dim float64 tensors made by
+    :meth:`scale_parameter`: buffers by default (they move with ``.to()``), ``nn.Parameter`` s where the
+    cue's ``learnable`` argument names them (``True``: all of them), so that an optimiser can fit them, e.g.
+    by maximising the filter's log-evidence (``ParticleFilter.run(..., grad=True)``).
     """
+
+    #: names of the scale parameters a subclass registers with :meth:`scale_parameter`
+    scales: tuple[str, ...] = ()
 
     obs_type: type = object
     obs_field: str = ""
@@ -95,6 +126,21 @@ class Likelihood(nn.Module):
         self.bones = None if bones is None else list(bones)
         # The bones as an index buffer, so that it moves with the module and no FK call builds it.
         self.register_buffer("bone_index", _bone_index(skeleton), persistent=False)
+
+    def scale_parameter(self, name: str, value, learnable: bool | Sequence[str] = False) -> None:
+        """Register ``name`` as a 0-dim float64 tensor holding ``value``: an ``nn.Parameter`` if
+        ``learnable`` is True or names it, else a buffer. An unknown name in ``learnable`` raises."""
+        if not isinstance(learnable, bool):
+            unknown = set(learnable) - set(self.scales)
+            if unknown:
+                raise ValueError(
+                    f"{type(self).__name__}: learnable names {sorted(unknown)}; it has {list(self.scales)}"
+                )
+        value = torch.as_tensor(value, dtype=torch.float64).detach().clone().reshape(())
+        if learnable is True or (not isinstance(learnable, bool) and name in learnable):
+            self.register_parameter(name, nn.Parameter(value))
+        else:
+            self.register_buffer(name, value)
 
     def select(self, obs):
         """This cue's container in ``obs`` (the container itself, a :class:`Frame` or a dict holding it under

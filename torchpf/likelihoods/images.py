@@ -53,7 +53,9 @@ class ImageLikelihood(Likelihood):
 
     def __init__(self, skeleton, cameras, bones=None):
         super().__init__(skeleton, bones)
-        self.cameras = CameraRig(cameras)  # the likelihood's own copy: moving it leaves the caller's alone
+        # a rig is held as given (edits and learnable parameters of the caller's rig take effect here), a
+        # list of cameras is stacked into one
+        self.cameras = cameras if isinstance(cameras, CameraRig) else CameraRig(cameras)
         if not len(self.cameras):
             raise ValueError("at least one camera is needed")
 
@@ -76,35 +78,43 @@ class ImageLikelihood(Likelihood):
         caps = project_capsules(self.cameras.resized(width, height), a, b, r)  # (B, V, C)
         return caps.unbind(caps.valid.ndim - 2)
 
-    def _check_cameras(self, n: int, what: str):
+    def _check_cameras(self, images: torch.Tensor, body: Body, event_dims: int = 3):
+        """``images`` (..., V, *event) must have the likelihood's V cameras and leading dims that batch the
+        poses (:meth:`Body.check_batch`)."""
+        n = images.shape[-event_dims]
         if n != self.n_cameras:
             raise ValueError(
-                f"{type(self).__name__}: {what} has {n} cameras, the likelihood {self.n_cameras}"
+                f"{type(self).__name__}: the observation has {n} cameras, the likelihood {self.n_cameras}"
             )
+        body.check_batch(images.shape[:-event_dims])
+
+
+def _sample(image: torch.Tensor, u: torch.Tensor, v: torch.Tensor, mode: str, padding: str) -> torch.Tensor:
+    """``grid_sample`` of images (*S, H, W) at pixel coords u, v (B, ...): one image for all points, or
+    one per sequence of a batch (the B rows are S groups of equal size, sequence-major; Body.rows)."""
+    H, W = image.shape[-2:]
+    images = image.reshape(-1, 1, H, W).to(u)
+    grid = torch.stack([(2 * u + 1) / W - 1, (2 * v + 1) / H - 1], -1).reshape(len(images), 1, -1, 2)
+    out = F.grid_sample(images, grid, mode=mode, padding_mode=padding, align_corners=False)
+    return out.reshape(u.shape)
 
 
 def _lookup(image: torch.Tensor, uv: torch.Tensor, mode: str = "bilinear") -> torch.Tensor:
-    """Look-up of one (H, W) image at (..., 2) pixel coords (u, v), "bilinear" or "nearest"; 0 outside."""
-    H, W = image.shape
-    shape = uv.shape[:-1]
-    grid = torch.stack([(2 * uv[..., 0] + 1) / W - 1, (2 * uv[..., 1] + 1) / H - 1], -1).reshape(1, 1, -1, 2)
-    out = F.grid_sample(image.to(uv)[None, None], grid, mode=mode, padding_mode="zeros", align_corners=False)
-    return out.reshape(shape)
+    """Look-up of an (H, W) image (or (S, H, W), one per sequence) at (B, ..., 2) pixel coords (u, v),
+    "bilinear" or "nearest"; 0 outside."""
+    return _sample(image, uv[..., 0], uv[..., 1], mode, "zeros")
 
 
 def _distance_lookup(dist: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
     """Distance-image look-up that keeps growing outside the image: value at the nearest border pixel plus
-    the distance to it, so a marker that leaves the image is not mistaken for a close one."""
-    H, W = dist.shape
+    the distance to it, so a marker that leaves the image is not mistaken for a close one. ``dist`` (H, W)
+    or (S, H, W), as in :func:`_lookup`."""
+    H, W = dist.shape[-2:]
     u = uv[..., 0].clamp(0, W - 1)
     v = uv[..., 1].clamp(0, H - 1)
     inside = torch.stack([u, v], -1)
     extra = (uv - inside).square().sum(-1).clamp_min(1e-12).sqrt() * ((uv - inside).abs().sum(-1) > 0)
-    grid = torch.stack([(2 * u + 1) / W - 1, (2 * v + 1) / H - 1], -1).reshape(1, 1, -1, 2)
-    val = F.grid_sample(
-        dist.to(uv)[None, None], grid, mode="bilinear", padding_mode="border", align_corners=False
-    )
-    return val.reshape(uv.shape[:-1]) + extra
+    return _sample(dist, u, v, "bilinear", "border") + extra
 
 
 @LIKELIHOODS.register("silhouette")
@@ -128,12 +138,14 @@ class SilhouetteLikelihood(ImageLikelihood):
             It widens the basin of attraction but erodes thin limbs (a 4-pixel forearm loses its
             plateau at 1 pixel of blur), which biases the peak at low resolution: 0 by default.
         generator: None (fixed pattern, deterministic) or a generator for fresh random points per call.
+        learnable: ``True`` (or ``["sigma"]``) makes ``sigma`` an ``nn.Parameter`` (see :class:`Likelihood`).
 
     obs: :class:`~torchpf.observations.Silhouettes` (V, H, W).
     """
 
     obs_type = Silhouettes
     obs_field = "silhouettes"
+    scales = ("sigma",)
 
     def __init__(
         self,
@@ -148,11 +160,13 @@ class SilhouetteLikelihood(ImageLikelihood):
         union: bool = False,
         bones: Sequence[int] | None = None,
         generator: torch.Generator | None = None,
+        learnable: bool | Sequence[str] = False,
     ):
         super().__init__(skeleton, cameras, bones)
         if interpolation not in ("bilinear", "nearest"):
             raise ValueError(f"interpolation must be 'bilinear' or 'nearest', got {interpolation!r}")
-        self.sigma, self.n_body, self.n_cap, self.blur = float(sigma), int(n_body), int(n_cap), float(blur)
+        self.scale_parameter("sigma", sigma, learnable)
+        self.n_body, self.n_cap, self.blur = int(n_body), int(n_cap), float(blur)
         self.interpolation, self.union, self.generator = interpolation, bool(union), generator
 
     def _model_points(self, caps: Capsules2D):
@@ -164,20 +178,20 @@ class SilhouetteLikelihood(ImageLikelihood):
         return pts, w
 
     def _distances(self, body, obs: Silhouettes):
-        self._check_cameras(obs.masks.shape[0], "the observation")
+        self._check_cameras(obs.masks, body)
         a, b, r = body.capsules(self.bones)
         images = obs.blurred(self.blur)
         out = []
         for v, caps in enumerate(self._caps2d(a, b, r, obs.height, obs.width)):
             pts, w = self._model_points(caps)
-            inside = _lookup(images[v], pts, self.interpolation)
+            inside = _lookup(images[..., v, :, :], pts, self.interpolation)
             total = w.sum(-1).clamp_min(1e-9)
             out.append(1.0 - (w * inside).sum(-1) / total)
         return torch.stack(out, -1)
 
     def _log_lik(self, body, obs: Silhouettes):
         D = self._distances(body, obs)
-        D = D * obs.valid.to(D.device)
+        D = D * body.rows(obs.valid, 1).to(D.device)
         return -(D * D).sum(-1) / (2 * self.sigma**2)
 
 
@@ -192,12 +206,14 @@ class DualSilhouetteLikelihood(ImageLikelihood):
         n_samples: N_s per camera.
         softness: 0 for the paper's hard 0/1 coverage; > 0 (pixels) ramps coverage across each capsule
             boundary so the cue has a gradient.
+        learnable: ``True`` (or ``["sigma"]``) makes ``sigma`` an ``nn.Parameter``.
 
     obs: :class:`~torchpf.observations.Silhouettes`. A camera with an empty mask contributes 0.
     """
 
     obs_type = Silhouettes
     obs_field = "silhouettes"
+    scales = ("sigma",)
 
     def __init__(
         self,
@@ -208,21 +224,22 @@ class DualSilhouetteLikelihood(ImageLikelihood):
         n_samples: int = 128,
         softness: float = 0.0,
         bones: Sequence[int] | None = None,
+        learnable: bool | Sequence[str] = False,
     ):
         super().__init__(skeleton, cameras, bones)
-        self.sigma, self.n_samples, self.softness = float(sigma), int(n_samples), float(softness)
+        self.scale_parameter("sigma", sigma, learnable)
+        self.n_samples, self.softness = int(n_samples), float(softness)
 
     def _distances(self, body, obs: Silhouettes):
-        self._check_cameras(obs.masks.shape[0], "the observation")
+        self._check_cameras(obs.masks, body)
         a, b, r = body.capsules(self.bones)
         fg, ok = obs.foreground_samples(self.n_samples)
+        fg, ok = body.rows(fg.to(a), 3), body.rows(ok.to(a.device), 1)  # (V, n, 2) or (B, V, n, 2)
         out = []
         for v, caps in enumerate(self._caps2d(a, b, r, obs.height, obs.width)):
-            if not bool(ok[v]):
-                out.append(a.new_zeros(a.shape[0]))
-                continue
-            cov = capsule_coverage(fg[v].to(a), caps, softness=self.softness)
-            out.append(1.0 - cov.mean(-1))
+            # a camera without foreground samples (empty or invalid mask) contributes 0
+            cov = capsule_coverage(fg[..., v, :, :], caps, softness=self.softness)
+            out.append(torch.where(ok[..., v], 1.0 - cov.mean(-1), 0.0))
         return torch.stack(out, -1)
 
     def _log_lik(self, body, obs: Silhouettes):
@@ -320,7 +337,10 @@ class OverlapLikelihood(SilhouetteLikelihood):
         interpolation: "nearest" (default) counts whole mask pixels, like the paper's pixel sums; the
             likelihood stays differentiable through the model's area. "bilinear" also moves with the
             points but under-counts the intersection along the boundary (~5 % for 4-pixel limbs).
+        learnable: ``True`` (or ``["beta"]``) makes ``beta`` an ``nn.Parameter``.
     """
+
+    scales = ("beta",)
 
     def __init__(
         self,
@@ -335,6 +355,7 @@ class OverlapLikelihood(SilhouetteLikelihood):
         interpolation: str = "nearest",
         bones: Sequence[int] | None = None,
         generator: torch.Generator | None = None,
+        learnable: bool | Sequence[str] = False,
     ):
         super().__init__(
             skeleton,
@@ -347,7 +368,9 @@ class OverlapLikelihood(SilhouetteLikelihood):
             bones=bones,
             generator=generator,
         )
-        self.beta, self.eps = float(beta), float(eps)
+        del self.sigma  # the ratio has no sigma
+        self.scale_parameter("beta", beta, learnable)
+        self.eps = float(eps)
 
     def ratios(self, theta: torch.Tensor, obs) -> torch.Tensor:
         """(..., N, V) overlap ratios |model ∩ mask| / |model ∪ mask| in [0, 1]."""
@@ -355,21 +378,21 @@ class OverlapLikelihood(SilhouetteLikelihood):
         return self._ratios(body, self.select(obs)).reshape(*body.batch, -1)
 
     def _ratios(self, body, obs: Silhouettes):
-        self._check_cameras(obs.masks.shape[0], "the observation")
+        self._check_cameras(obs.masks, body)
         a, b, r = body.capsules(self.bones)
         images = obs.blurred(self.blur)
-        area = obs.area().to(a)
+        area = body.rows(obs.area().to(a), 1)
         out = []
         for v, caps in enumerate(self._caps2d(a, b, r, obs.height, obs.width)):
             pts, w = self._model_points(caps)
-            inter = (w * _lookup(images[v], pts, self.interpolation)).sum(-1)
-            union = w.sum(-1) + area[v] - inter
+            inter = (w * _lookup(images[..., v, :, :], pts, self.interpolation)).sum(-1)
+            union = w.sum(-1) + area[..., v] - inter
             out.append(inter / union.clamp_min(1e-9))
         return torch.stack(out, -1)
 
     def _log_lik(self, body, obs: Silhouettes):
         ratio = self._ratios(body, obs)
-        logr = torch.log(ratio.clamp_min(self.eps)) * obs.valid.to(ratio.device)
+        logr = torch.log(ratio.clamp_min(self.eps)) * body.rows(obs.valid, 1).to(ratio.device)
         return self.beta * logr.sum(-1)
 
 
@@ -392,6 +415,7 @@ class SkinBlobLikelihood(ImageLikelihood):
             both wrists of ``human.urdf`` (``(("Head", "Head_end"), "LeftHand", "RightHand")``) or of
             ``fontmarty22.urdf``, whichever names the skeleton has.
         sigma: pixels of the distance image (5 in Fontmarty et al.).
+        learnable: ``True`` (or ``["sigma"]``) makes ``sigma`` an ``nn.Parameter``.
 
     obs: :class:`~torchpf.observations.DistanceMaps` (V, H, W) distances to the nearest skin blob
     (``DistanceMaps.from_features(skin_masks)``).
@@ -399,8 +423,11 @@ class SkinBlobLikelihood(ImageLikelihood):
 
     obs_type = DistanceMaps
     obs_field = "skin"
+    scales = ("sigma",)
 
-    def __init__(self, skeleton, cameras, *, markers=None, sigma: float = 5.0):
+    def __init__(
+        self, skeleton, cameras, *, markers=None, sigma: float = 5.0, learnable: bool | Sequence[str] = False
+    ):
         if markers is None:
             names = set(skeleton.joint_names)
             flat = [[m] if isinstance(m, str) else list(m) for m in _DEFAULT_MARKERS[0]]
@@ -417,7 +444,7 @@ class SkinBlobLikelihood(ImageLikelihood):
         for i, g in enumerate(groups):
             A[g, i] = 1.0 / len(g)
         self.register_buffer("marker_matrix", A)
-        self.sigma = float(sigma)
+        self.scale_parameter("sigma", sigma, learnable)
 
     def markers(self, theta: torch.Tensor) -> torch.Tensor:
         """(..., D) -> (..., M, 3) world positions of the virtual markers."""
@@ -428,15 +455,18 @@ class SkinBlobLikelihood(ImageLikelihood):
         return torch.einsum("...jk,jm->...mk", joints, self.marker_matrix.to(joints))
 
     def _distances(self, body, obs: DistanceMaps):
-        self._check_cameras(obs.distance.shape[0], "the observation")
+        self._check_cameras(obs.distance, body)
         X = self._markers(body.joints)
         H, W = obs.distance.shape[-2:]
         uv = self.cameras.resized(W, H).project(X)  # (B, M, V, 2)
-        out = [_distance_lookup(obs.distance[v], uv[..., v, :]).mean(-1) for v in range(len(obs.distance))]
+        out = [
+            _distance_lookup(obs.distance[..., v, :, :], uv[..., v, :]).mean(-1)
+            for v in range(self.n_cameras)
+        ]
         return torch.stack(out, -1)
 
     def _log_lik(self, body, obs: DistanceMaps):
-        D = self._distances(body, obs) * obs.valid.to(body.theta.device)
+        D = self._distances(body, obs) * body.rows(obs.valid, 1).to(body.theta.device)
         return -(D * D).sum(-1) / (2 * self.sigma**2)
 
 
@@ -451,6 +481,7 @@ class ChamferLikelihood(ImageLikelihood):
         sigma, tau: pixels of the distance image.
         n_side, n_cap: outline points per capsule flank and per end arc.
         outline_only: drop outline points covered by another capsule, keeping the silhouette outline.
+        learnable: ``True`` (or ``["sigma"]``) makes ``sigma`` an ``nn.Parameter`` (``tau`` stays fixed).
 
     obs: :class:`~torchpf.observations.DistanceMaps` (V, H, W) distances to the nearest edge pixel
     (``DistanceMaps.from_edges_of(images)``).
@@ -458,6 +489,7 @@ class ChamferLikelihood(ImageLikelihood):
 
     obs_type = DistanceMaps
     obs_field = "edges"
+    scales = ("sigma",)
 
     def __init__(
         self,
@@ -470,24 +502,26 @@ class ChamferLikelihood(ImageLikelihood):
         n_cap: int = 2,
         outline_only: bool = True,
         bones: Sequence[int] | None = None,
+        learnable: bool | Sequence[str] = False,
     ):
         super().__init__(skeleton, cameras, bones)
-        self.sigma, self.tau = float(sigma), float(tau)
+        self.scale_parameter("sigma", sigma, learnable)
+        self.tau = float(tau)
         self.n_side, self.n_cap, self.outline_only = int(n_side), int(n_cap), bool(outline_only)
 
     def _log_lik(self, body, obs: DistanceMaps):
-        self._check_cameras(obs.distance.shape[0], "the observation")
+        self._check_cameras(obs.distance, body)
         a, b, r = body.capsules(self.bones)
         H, W = obs.distance.shape[-2:]
+        valid = body.rows(obs.valid.to(a.device), 1).expand(a.shape[0], self.n_cameras)
         total = a.new_zeros(a.shape[0])
         M = 2 * self.n_side + 2 * self.n_cap
         for v, caps in enumerate(self._caps2d(a, b, r, H, W)):
-            if not bool(obs.valid[v]):
-                continue
             pts, ok = outline_points(caps, self.n_side, self.n_cap)
             w = ok.to(a.dtype)
             if self.outline_only:
                 w = w * (1.0 - capsule_coverage(pts, caps, exclude_own=M))
-            d2 = _distance_lookup(obs.distance[v], pts).square().clamp_max(self.tau**2)
-            total = total - (w * d2).sum(-1) / w.sum(-1).clamp_min(1.0) / (2 * self.sigma**2)
+            d2 = _distance_lookup(obs.distance[..., v, :, :], pts).square().clamp_max(self.tau**2)
+            term = (w * d2).sum(-1) / w.sum(-1).clamp_min(1.0) / (2 * self.sigma**2)
+            total = total - torch.where(valid[:, v], term, 0.0)  # a missing camera contributes 0
         return total

@@ -34,12 +34,16 @@ class Keypoints2DLikelihood(ImageLikelihood):
             ``skeleton.joint_names``.
         sigma: pixels, in the observation's pixel frame (``image_size``).
         image_size: (width, height) of the detections' pixel frame per camera if not the cameras' own.
+        learnable: ``True`` (or ``["sigma"]``) makes ``sigma`` an ``nn.Parameter`` (see
+            :class:`~torchpf.likelihoods.Likelihood`); the density is normalised, so the log-evidence has
+            its maximum at the detections' noise level.
 
     obs: :class:`~torchpf.observations.Keypoints2D` (V, J, 2), NaN or ``visible=False`` for missing ones.
     """
 
     obs_type = Keypoints2D
     obs_field = "keypoints"
+    scales = ("sigma",)
 
     def __init__(
         self,
@@ -51,31 +55,37 @@ class Keypoints2DLikelihood(ImageLikelihood):
         noise: str = "gaussian",
         dof: float = 3.0,
         image_size: tuple[int, int] | None = None,
+        learnable: bool | Sequence[str] = False,
     ):
         super().__init__(skeleton, cameras)
         if noise not in ("gaussian", "student"):
             raise ValueError(f"noise must be 'gaussian' or 'student', got {noise!r}")
         self.joint_index = resolve_joints(skeleton, joints)
-        self.sigma, self.noise, self.dof = float(sigma), noise, float(dof)
+        self.scale_parameter("sigma", sigma, learnable)
+        self.noise, self.dof = noise, float(dof)
         self.image_size = image_size
 
     def _log_lik(self, body, obs: Keypoints2D):
-        self._check_cameras(obs.uv.shape[0], "the observation")
-        if obs.uv.shape[1] != len(self.joint_index):
-            raise ValueError(f"obs has {obs.uv.shape[1]} points per camera, expected {len(self.joint_index)}")
+        self._check_cameras(obs.uv, body)
+        if obs.uv.shape[-2] != len(self.joint_index):
+            raise ValueError(
+                f"obs has {obs.uv.shape[-2]} points per camera, expected {len(self.joint_index)}"
+            )
         X = body.joints[:, self.joint_index]  # (B, J, 3)
         rig = self.cameras if self.image_size is None else self.cameras.resized(*self.image_size)
         uv = rig.project(X)  # (B, J, V, 2)
-        d2 = (uv - obs.uv.transpose(0, 1).to(uv)).square().sum(-1)  # (B, J, V)
-        s2 = self.sigma**2
+        observed = body.rows(obs.uv.to(uv), 3).transpose(-3, -2)  # (J, V, 2) or (B, J, V, 2)
+        visible = body.rows(obs.visible.to(uv.device), 2).transpose(-2, -1)
+        d2 = (uv - observed).square().sum(-1)  # (B, J, V)
+        s2 = self.sigma.to(d2).square()
         if self.noise == "gaussian":
-            lp = -d2 / (2 * s2) - math.log(2 * math.pi * s2)
+            lp = -d2 / (2 * s2) - torch.log(2 * math.pi * s2)
         else:
             nu = self.dof
             lp = (
                 math.lgamma((nu + 2) / 2)
                 - math.lgamma(nu / 2)
-                - math.log(nu * math.pi * s2)
+                - torch.log(nu * math.pi * s2)
                 - (nu + 2) / 2 * torch.log1p(d2 / (nu * s2))
             )
-        return (lp * obs.visible.transpose(0, 1).to(lp.device)).sum((-1, -2))
+        return (lp * visible).sum((-1, -2))

@@ -34,6 +34,7 @@ class PointCloudLikelihood(Likelihood):
         chunk_size: poses per chunk of the distance kernel (memory bound; see ``capsule_distance``).
         compile: fuse the distance kernel with ``torch.compile`` (about 2x faster on CPU after a one-off
             compilation of 10-20 s; see ``capsule_truncated_cost``).
+        learnable: ``True`` (or ``["sigma"]``) makes ``sigma`` an ``nn.Parameter`` (``tau`` stays fixed).
 
     obs: :class:`~torchpf.observations.PointCloud` with ``points`` (K, 3), or a (K, 3) tensor.
     Cost: O(N K C) in chunks of ~2^20 pose-capsule-point triples; memory O(N) beyond the chunk.
@@ -41,6 +42,7 @@ class PointCloudLikelihood(Likelihood):
 
     obs_type = PointCloud
     obs_field = "points"
+    scales = ("sigma",)
 
     def __init__(
         self,
@@ -52,11 +54,12 @@ class PointCloudLikelihood(Likelihood):
         bones: Sequence[int] | None = None,
         chunk_size: int | None = None,
         compile: bool = False,
+        learnable: bool | Sequence[str] = False,
     ):
         super().__init__(skeleton, bones)
         self.compile = bool(compile)
-        self.sigma = float(sigma)
-        self.tau = float(tau) if tau is not None else (3 * self.sigma) ** 2
+        self.scale_parameter("sigma", sigma, learnable)
+        self.tau = float(tau) if tau is not None else (3 * float(sigma)) ** 2
         if view_point is not None and hasattr(view_point, "center"):
             view_point = view_point.center
         if view_point is not None:

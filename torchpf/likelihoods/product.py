@@ -29,13 +29,17 @@ class ProductLikelihood(nn.Module):
     Args:
         terms: name -> likelihood module (or a sequence, named "0", "1", ...).
         weights: name -> exponent (default 1 for each).
+        learnable: ``True`` makes the exponents an ``nn.Parameter`` ``term_weights`` (K,) (in the terms'
+            order), else it is a buffer; :attr:`weights` reads them as a name -> 0-dim tensor mapping.
 
     obs: a :class:`~torchpf.observations.Frame` (or a dict of the same fields); each term picks its field
     and a missing field contributes 0. The body (forward kinematics) is computed once per call and handed to
     every term (:meth:`Likelihood.log_likelihood_body`).
     """
 
-    def __init__(self, terms, weights: Mapping[str, float] | Sequence[float] | None = None):
+    def __init__(
+        self, terms, weights: Mapping[str, float] | Sequence[float] | None = None, *, learnable: bool = False
+    ):
         super().__init__()
         if not isinstance(terms, Mapping):
             terms = {str(i): t for i, t in enumerate(terms)}
@@ -47,7 +51,18 @@ class ProductLikelihood(nn.Module):
         unknown = set(weights) - set(terms)
         if unknown:
             raise ValueError(f"weights for unknown terms {sorted(unknown)}")
-        self.weights = {k: float(weights.get(k, 1.0)) for k in terms}
+        values = torch.tensor([float(weights.get(k, 1.0)) for k in terms], dtype=torch.float64)
+        if learnable:
+            self.term_weights = nn.Parameter(values)
+        else:
+            self.register_buffer("term_weights", values)
+        # terms with a fixed exponent of 0 are not evaluated at all (decided here: no host sync per call)
+        self._active = [k for k, w in zip(terms, values.tolist(), strict=True) if learnable or w != 0]
+
+    @property
+    def weights(self) -> dict[str, torch.Tensor]:
+        """Name -> exponent ``w_k`` (0-dim views of :attr:`term_weights`)."""
+        return dict(zip(self.terms, self.term_weights.unbind(), strict=True))
 
     def _values(self, theta: torch.Tensor, obs, names) -> Iterator[tuple[str, torch.Tensor]]:
         """(name, unweighted log-likelihood (..., N)) of the terms ``names``: the body of each skeleton is
@@ -73,8 +88,9 @@ class ProductLikelihood(nn.Module):
     def forward(self, theta: torch.Tensor, obs) -> torch.Tensor:
         """(..., N, D), Frame -> (..., N) weighted sum of the terms' log-likelihoods."""
         total = theta.new_zeros(theta.shape[:-1])
-        for k, value in self._values(theta, obs, [k for k in self.terms if self.weights[k] != 0]):
-            total = total + self.weights[k] * value
+        weights = self.weights
+        for k, value in self._values(theta, obs, self._active):
+            total = total + weights[k].to(value) * value
         return total
 
 

@@ -415,3 +415,17 @@ def test_mean_ignores_zero_weight_nan_particles():
     state = ParticleState(x, torch.tensor([0.0, -math.inf, 0.0]), torch.tensor(0.0))
     torch.testing.assert_close(state.mean(), torch.tensor([2.0, 3.0]))
     assert torch.isfinite(state.cov()).all()
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_run_with_grad_keeps_the_graph(kind):
+    """``run(grad=True)``: the log-evidence is differentiable in the initial particles (the dynamics'
+    reparameterised draws and the likelihood carry the graph; resampling indices are held fixed)."""
+    pf = make_filter(kind)
+    obs = observations()
+    x0 = _x0().requires_grad_()
+    assert not pf.run(obs, x0, 0).log_evidence.requires_grad  # the default: no graph
+    track = pf.run(obs, x0, 0, grad=True)
+    track.log_evidence.sum().backward()
+    assert x0.grad is not None and torch.isfinite(x0.grad).all() and x0.grad.abs().sum() > 0
+    torch.testing.assert_close(track.estimates.detach(), pf.run(obs, x0, 0).estimates)

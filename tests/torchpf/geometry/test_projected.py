@@ -32,12 +32,17 @@ def test_project_capsules_radius_on_axis():
     assert not bool(behind.valid.any())
 
 
-def test_project_capsules_into_a_rig():
+def _rig_and_capsules():
+    """Three cameras and 5 poses of 4 random capsules (float64) in front of them."""
     rig = camera_ring(3, radius=4.0, width=160, height_px=120)
     g = torch.Generator().manual_seed(0)
     a = torch.randn(5, 4, 3, generator=g, dtype=torch.float64) * 0.3 + torch.tensor([0.0, 0.0, 1.0])
     b = a + torch.randn(5, 4, 3, generator=g, dtype=torch.float64) * 0.2
-    r = torch.full((4,), 0.05, dtype=torch.float64)
+    return rig, a, b, torch.full((4,), 0.05, dtype=torch.float64)
+
+
+def test_project_capsules_into_a_rig():
+    rig, a, b, r = _rig_and_capsules()
     caps = project_capsules(rig, a, b, r)
     assert caps.pa.shape == (5, 3, 4, 2) and caps.ra.shape == (5, 3, 4)
     for v, (cam, one) in enumerate(zip(rig.values(), caps.unbind(1), strict=True)):
@@ -205,3 +210,23 @@ def test_outline_points_lie_on_the_boundary():
             args = [x[n, c].numpy() for x in (caps.pa, caps.pb, caps.ra, caps.rb)]
             sd = np.array([round_cone_sdf(p, *args) for p in pts[n, c * 16 : (c + 1) * 16].numpy()])
             np.testing.assert_allclose(sd, 0.0, atol=1e-9)
+
+
+def test_projected_geometry_follows_the_device(device, dtype, generator):
+    rig, a, b, r = _rig_and_capsules()
+    ref = project_capsules(rig, a, b, r)
+    caps = project_capsules(rig.to(device), *(x.to(device, dtype) for x in (a, b, r)))
+    rig.to("cpu")
+    for x, y in zip((caps.pa, caps.ra), (ref.pa, ref.ra), strict=True):
+        assert x.device.type == device.type and x.dtype == dtype
+        torch.testing.assert_close(x.cpu().double(), y, rtol=1e-4, atol=1e-3)
+    one = caps.unbind(1)[0]
+    pts, w = sample_in_capsules(one, 8, 2, generator=generator)
+    cover = capsule_coverage(pts, one, softness=1.0)
+    outline, ok = outline_points(one, 4, 2)
+    masks = capsule_masks(one, 120, 160)
+    for t in (pts, w, cover, outline, ok, masks):
+        assert t.device.type == device.type
+    assert (
+        pts.dtype == dtype and cover.dtype == dtype and bool((cover >= 0.5 - 1e-4).all())
+    )  # inside: ramp >= 1/2

@@ -167,12 +167,11 @@ def test_broadcasting_limits_and_shapes(f22, interior_poses):
         ik.project(f22, far, theta, method="newton")
 
 
-@pytest.mark.cuda
-def test_cuda_matches_cpu(human, interior_poses):
-    truth = interior_poses(human, 8, seed=16, dtype=torch.float32)
+def test_device_and_dtype_match_the_cpu(human, interior_poses, device, dtype):
+    truth = interior_poses(human, 8, seed=16, dtype=torch.float64)
     targets = human.fk(truth) + 0.01
     cpu = ik.project(human, targets, truth)
-    on_gpu = Skeleton.from_urdf(path("human.urdf")).to("cuda")  # own copy: the fixture stays on the CPU
-    gpu = ik.project(on_gpu, targets.cuda(), truth.cuda())
-    assert gpu.device.type == "cuda"
-    torch.testing.assert_close(gpu.cpu(), cpu, atol=1e-3, rtol=0)
+    moved = Skeleton.from_urdf(path("human.urdf")).to(device)  # own copy: the fixture stays on the CPU
+    out = ik.project(moved, targets.to(device, dtype), truth.to(device, dtype))
+    assert out.device.type == device.type and out.dtype == dtype
+    torch.testing.assert_close(out.cpu().double(), cpu, atol=1e-3, rtol=0)

@@ -165,15 +165,16 @@ def test_integer_and_module_call():
     torch.testing.assert_close(out, skel.fk(torch.zeros(2, 22)))
 
 
-@pytest.mark.cuda
-def test_cuda_matches_cpu(random_poses):
+def test_device_and_dtype_match_the_cpu(random_poses, device, dtype):
     skel = Skeleton.from_urdf(path("human.urdf"))
-    theta = random_poses(skel, (128,), torch.float32)
-    gpu = skel.to("cuda").fk(theta.cuda())
-    assert gpu.device.type == "cuda" and skel.tree.parents.device.type == "cuda"  # buffers moved
-    torch.testing.assert_close(gpu.cpu(), skel.fk(theta), rtol=0, atol=1e-5)
-    ends, radii = skel.capsules(theta.cuda())
-    assert ends.device.type == "cuda" and radii.device.type == "cuda"
+    theta = random_poses(skel, (128,), torch.float64)
+    reference = skel.fk(theta)
+    out = skel.to(device).fk(theta.to(device, dtype))
+    assert out.device.type == device.type and out.dtype == dtype
+    assert skel.tree.parents.device.type == device.type  # buffers moved
+    torch.testing.assert_close(out.cpu().double(), reference, rtol=0, atol=1e-5)
+    ends, radii = skel.capsules(theta.to(device, dtype))
+    assert ends.device.type == device.type and radii.device.type == device.type and ends.dtype == dtype
 
 
 def test_dof_joints_name_the_moved_joint():

@@ -82,13 +82,15 @@ def test_missing_data_contributes_nothing(skel, truth, rig, frame):
         sil(thetas, 3.0)
 
 
-@pytest.mark.cuda
-def test_likelihoods_cuda(skel, truth, rig, depth_cam, frame):
+def test_likelihoods_follow_the_particles_device_and_dtype(skel, truth, rig, depth_cam, frame, device, dtype):
     thetas, _ = sweep(truth, skel, "LeftArm_Yrotation", n=5)
     for name, lik in make_liks(skel, rig, depth_cam).items():
-        cpu = lik(thetas, frame)
-        gpu = lik.to("cuda")(thetas.cuda(), frame)
-        torch.testing.assert_close(gpu.cpu(), cpu, msg=name)
+        cpu = lik(thetas.to(dtype), frame)
+        out = lik.to(device)(thetas.to(device, dtype), frame)  # the frame stays on the CPU: cues move it
+        assert out.device.type == device.type and out.dtype == dtype, name
+        tol = {"rtol": 1e-3, "atol": 1e-3} if dtype == torch.float32 else {}
+        torch.testing.assert_close(out.cpu(), cpu, msg=name, **tol)
+        lik.to("cpu")
 
 
 def test_body_is_one_forward_kinematics(skel, truth):
@@ -119,3 +121,38 @@ def test_registry_names_every_cue():
     assert LIKELIHOODS.get("pointcloud") is PointCloudLikelihood and not PointCloudLikelihood.needs_cameras
     with pytest.raises(ValueError, match="unknown likelihood 'nope'; choose from"):
         LIKELIHOODS.get("nope")
+
+
+def test_a_batch_of_sequences_scores_each_against_its_own_frame(skel, truth, rig, depth_cam, frame):
+    """(S, V, H, W) images (and (S, V, J, 2) keypoints, (S, K, 3) clouds) with (S, N, D) poses: sequence s
+    is scored against its own frame, as S separate calls would."""
+    from torchpf.observations import DistanceMaps, Keypoints2D
+
+    g = torch.Generator().manual_seed(0)
+    thetas = truth + 0.05 * torch.randn(2, 3, len(truth), generator=g, dtype=torch.float64)
+    other = Frame(  # a second frame: everything shifted by 2 pixels / 3 cm, camera 1 missing
+        silhouettes=Silhouettes(frame.silhouettes.masks.roll(2, -1), valid=torch.tensor([True, False, True])),
+        points=PointCloud(frame.points.points + 0.03),
+        keypoints=Keypoints2D(frame.keypoints.uv + 2.0),
+        skin=DistanceMaps(frame.skin.distance.roll(2, -1)),
+        edges=DistanceMaps(frame.edges.distance.roll(2, -2), valid=torch.tensor([True, True, False])),
+    )
+    frames = (frame, other)
+    batched = Frame(
+        silhouettes=Silhouettes(
+            torch.stack([f.silhouettes.masks for f in frames]),
+            torch.stack([f.silhouettes.valid for f in frames]),
+        ),
+        points=PointCloud(torch.stack([f.points.points for f in frames])),
+        keypoints=Keypoints2D(torch.stack([f.keypoints.uv for f in frames])),
+        skin=DistanceMaps(torch.stack([f.skin.distance for f in frames])),
+        edges=DistanceMaps(
+            torch.stack([f.edges.distance for f in frames]), torch.stack([f.edges.valid for f in frames])
+        ),
+    )
+    for name, lik in make_liks(skel, rig, depth_cam).items():
+        expected = torch.stack([lik(thetas[s], frames[s]) for s in range(2)])
+        torch.testing.assert_close(lik(thetas, batched), expected, msg=name)
+        assert not torch.allclose(expected[0], lik(thetas[0], frames[1])), name
+    with pytest.raises(ValueError, match="leading dims"):
+        SilhouetteLikelihood(skel, rig)(thetas[:1], batched)
