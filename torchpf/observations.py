@@ -160,16 +160,16 @@ class Silhouettes:
         return self._cache[("area", self.masks.device)]
 
     def outside_distance(self) -> torch.Tensor:
-        """(V, H, W) distance (pixels) from each pixel centre to the foreground (mask > 0.5), 0 inside; its
-        zero level is the foreground's pixel edge (``cv2.distanceTransform`` minus half a pixel). A
+        """(..., V, H, W) distance (pixels) from each pixel centre to the foreground (mask > 0.5), 0 inside;
+        its zero level is the foreground's pixel edge (``cv2.distanceTransform`` minus half a pixel). A
         bilinear look-up in it grows linearly away from the silhouette, so a model point outside the mask
         has a gradient however far it lies (the distance cue of :mod:`torchpf.refine`)."""
-        if "outside" not in self._cache:
-            hard = (self.masks > 0.5).cpu().numpy()
-            self._cache["outside"] = torch.stack(
-                [torch.from_numpy(distance_image(m)).sub(0.5).clamp_min(0.0) for m in hard]
-            ).to(self.masks.device)
-        return self._cache["outside"]
+        key = ("outside", self.masks.device)
+        if key not in self._cache:
+            hard = (self.masks > 0.5).reshape(-1, *self.masks.shape[-2:]).cpu().numpy()
+            out = torch.stack([torch.from_numpy(distance_image(m)).sub(0.5).clamp_min(0.0) for m in hard])
+            self._cache[key] = out.reshape(self.masks.shape).to(self.masks.device)
+        return self._cache[key]
 
     def foreground_samples(self, n: int) -> tuple[torch.Tensor, torch.Tensor]:
         """``n`` fixed points on each camera's foreground (Fontmarty's N_s points of the dual cue, §3.2.2).

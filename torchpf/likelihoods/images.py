@@ -274,11 +274,13 @@ class SilhouetteDistanceLikelihood(ImageLikelihood):
         n_body, n_cap: model area points per capsule body / end cap.
         n_samples: ``N_s`` foreground samples per camera.
 
-    obs: :class:`~torchpf.observations.Silhouettes`. A camera with an empty or invalid mask contributes 0.
+    obs: :class:`~torchpf.observations.Silhouettes` (V, H, W), or (S, V, H, W) for ``S`` sequences. A camera
+    with an empty or invalid mask contributes 0.
     """
 
     obs_type = Silhouettes
     obs_field = "silhouettes"
+    scales = ("sigma",)
 
     def __init__(
         self,
@@ -291,30 +293,30 @@ class SilhouetteDistanceLikelihood(ImageLikelihood):
         n_cap: int = 2,
         n_samples: int = 128,
         bones: Sequence[int] | None = None,
+        learnable: bool | Sequence[str] = False,
     ):
         super().__init__(skeleton, cameras, bones)
         if not (sigma > 0 and tau > 0):
             raise ValueError(f"sigma and tau must be positive pixels, got sigma={sigma}, tau={tau}")
-        self.sigma, self.tau = float(sigma), float(tau)
+        self.scale_parameter("sigma", sigma, learnable)
+        self.tau = float(tau)
         self.n_body, self.n_cap, self.n_samples = int(n_body), int(n_cap), int(n_samples)
 
     def _distances(self, body, obs: Silhouettes):
         """(B, V) ``E_l`` in squared pixels."""
-        self._check_cameras(obs.masks.shape[0], "the observation")
+        self._check_cameras(obs.masks, body)
         a, b, r = body.capsules(self.bones)
         outside = obs.outside_distance()
         fg, ok = obs.foreground_samples(self.n_samples)
-        ok = ok & obs.valid
+        fg, ok = body.rows(fg.to(a), 3), body.rows(ok.to(a.device), 1)  # (V, n, 2) or (B, V, n, 2)
         out = []
         for v, caps in enumerate(self._caps2d(a, b, r, obs.height, obs.width)):
-            if not bool(ok[v]):
-                out.append(a.new_zeros(a.shape[0]))
-                continue
             pts, w = sample_in_capsules(caps, self.n_body, self.n_cap)
-            d_in = _distance_lookup(outside[v], pts).clamp_max(self.tau)
+            d_in = _distance_lookup(outside[..., v, :, :], pts).clamp_max(self.tau)
             model_term = (w * d_in * d_in).sum(-1) / w.sum(-1).clamp_min(1e-9)
-            d_cov = distance_to_capsules(fg[v].to(a), caps).clamp_max(self.tau)
-            out.append(model_term + (d_cov * d_cov).mean(-1))
+            d_cov = distance_to_capsules(fg[..., v, :, :], caps).clamp_max(self.tau)
+            # a camera without foreground samples (empty or invalid mask) contributes 0
+            out.append(torch.where(ok[..., v], model_term + (d_cov * d_cov).mean(-1), 0.0))
         return torch.stack(out, -1)
 
     def _log_lik(self, body, obs: Silhouettes):

@@ -8,6 +8,7 @@ from torchpf.likelihoods import (
     Keypoints2DLikelihood,
     OverlapLikelihood,
     PointCloudLikelihood,
+    SilhouetteDistanceLikelihood,
     SilhouetteLikelihood,
     SkinBlobLikelihood,
 )
@@ -45,6 +46,7 @@ def make_liks(skel, rig, depth_cam):
         "silhouette_union": SilhouetteLikelihood(skel, rig, union=True),
         "dual": DualSilhouetteLikelihood(skel, rig),
         "dual_soft": DualSilhouetteLikelihood(skel, rig, softness=1.0),
+        "silhouette_distance": SilhouetteDistanceLikelihood(skel, rig),
         "overlap": OverlapLikelihood(skel, rig),
         "keypoints": Keypoints2DLikelihood(skel, rig),
         "keypoints_t": Keypoints2DLikelihood(skel, rig, noise="student"),

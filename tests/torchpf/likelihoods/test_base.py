@@ -34,7 +34,17 @@ def test_every_likelihood_peaks_at_truth(skel, truth, rig, depth_cam, frame, dof
 
 @pytest.mark.parametrize(
     "name",
-    ["pointcloud", "pointcloud_half", "silhouette", "dual_soft", "overlap", "keypoints", "skin", "chamfer"],
+    [
+        "pointcloud",
+        "pointcloud_half",
+        "silhouette",
+        "dual_soft",
+        "silhouette_distance",
+        "overlap",
+        "keypoints",
+        "skin",
+        "chamfer",
+    ],
 )
 def test_gradients_exist(skel, truth, rig, depth_cam, frame, name):
     lik = make_liks(skel, rig, depth_cam)[name]
@@ -116,7 +126,16 @@ def test_forward_is_the_body_score(skel, truth, rig, depth_cam, frame):
 
 def test_registry_names_every_cue():
     assert LIKELIHOODS.names() == sorted(
-        ["silhouette", "dual_silhouette", "overlap", "pointcloud", "keypoints", "chamfer", "skin"]
+        [
+            "silhouette",
+            "dual_silhouette",
+            "silhouette_distance",
+            "overlap",
+            "pointcloud",
+            "keypoints",
+            "chamfer",
+            "skin",
+        ]
     )
     assert LIKELIHOODS.get("pointcloud") is PointCloudLikelihood and not PointCloudLikelihood.needs_cameras
     with pytest.raises(ValueError, match="unknown likelihood 'nope'; choose from"):
