@@ -7,8 +7,9 @@ then takes the ``K`` particles of highest weight and refines them by projected A
 (:class:`~torchpf.refine.Refiner`; default the two-sided distance-transform silhouette cue). How the refined
 poses re-enter (``refine_mode``):
 
-* ``"estimate"`` (default): the particle set is left as the APF made it and the frame's estimate is the
-  best particle refined (``info["estimate"]``): a post-processing of the APF's MAP that the filter never
+* ``"estimate"`` (default): the particle set is left as the APF made it; the weighted mean and the
+  ``K - 1`` particles of highest weight are refined and the frame's estimate is the one the refinement left
+  best on its objective (``info["estimate"]``): a post-processing of the APF's output that the filter never
   sees, so it cannot hurt the search, but the next frame starts from the unrefined particles.
 * ``"particles"``: each refined pose ``x' = T(x)`` replaces its particle, and its weight is moved by the
   ratio of the filtering target ``pi(x) = p(z_t | x) p(x | x_{t-1})`` at the two points::
@@ -144,12 +145,22 @@ class HybridParticleFilter(AnnealedParticleFilter):
         state, x, log_w, inc, failed, resampled, x_prev, extras_prev, info = self._anneal(
             state, obs, generator
         )
-        k = min(self.n_refine, x.shape[-2])
+        estimate = self.refine_mode == "estimate"
+        k = min(self.n_refine - estimate, x.shape[-2])  # "estimate" refines the mean and K - 1 particles
         top = log_w.topk(k, dim=-1).indices  # (..., K)
         xk = gather_particles(x, top)
         prev = gather_particles(x_prev, top)
         dim = x.ndim - 2  # the particle dim, also of the extras (..., N, *e)
         extras_k = {key: gather_particles(v, top) for key, v in extras_prev.items()}
+        if estimate:
+            p = normalise(log_w).exp().unsqueeze(-1)
+
+            def mean(v):  # weighted mean; a zero-weight particle (a NaN one among them) does not count
+                return torch.where(p > 0, p * v, 0.0).sum(-2, keepdim=True)
+
+            xk = torch.cat([mean(x), xk], -2)  # the weighted mean, as a candidate
+            prev = torch.cat([mean(x_prev), prev], -2)
+            extras_k = {key: torch.cat([v.narrow(dim, 0, 1), v], dim) for key, v in extras_k.items()}
         log_prior = None
         if self.refine_prior:
 
@@ -158,8 +169,9 @@ class HybridParticleFilter(AnnealedParticleFilter):
 
         refined = self.refiner(xk, obs, log_prior=log_prior)
         info["refine_gain"] = (refined.loss_before - refined.loss).mean(-1)
-        if self.refine_mode == "estimate":
-            info["estimate"] = refined.x[..., 0, :]  # the best particle, refined
+        if estimate:  # the candidate the refinement left best (the mean where every objective is NaN)
+            best = torch.nan_to_num(refined.loss, nan=torch.inf).argmin(-1, keepdim=True)
+            info["estimate"] = gather_particles(refined.x, best).squeeze(-2)
         else:
             extras = {key: torch.cat([v, v], dim) for key, v in extras_k.items()}
             both = torch.cat([xk, refined.x], -2)
