@@ -888,6 +888,9 @@ FOREIGN_SETUPS: dict[str, Callable[..., Any]] = {
     ),
     "hybrid_estimate": tracker_setup(filter="hybrid", filter_options={"refine_mode": "estimate"}),
     "calibrated_hybrid": calibrated_setup(filter="hybrid"),
+    "calibrated_hybrid_recentre": calibrated_setup(
+        filter="hybrid", filter_options={"refine_mode": "recentre"}
+    ),
     "calibrated_hybrid_particles": calibrated_setup(
         filter="hybrid", filter_options={"refine_mode": "particles", "refine_prior": True}
     ),

@@ -108,6 +108,11 @@ class Refiner(nn.Module):
         plus the final look at the last iterate)."""
         return int(math.ceil(n_poses * (self.steps * self.cost_per_step + 1)))
 
+    def clamp(self, x: Tensor) -> Tensor:
+        """Poses ``x (..., D)`` projected onto the skeleton's joint limits."""
+        lower, upper = self.skeleton.lower.to(x), self.skeleton.upper.to(x)
+        return torch.minimum(torch.maximum(x, lower), upper)
+
     def objective(self, x: Tensor, obs, log_prior=None) -> Tensor:
         """``E(x) (..., K)`` for poses ``x (..., K, D)``; ``log_prior``: ``x -> (..., K)`` or None."""
         loss = -self.cue(x, obs)
@@ -123,11 +128,10 @@ class Refiner(nn.Module):
         Runs with gradients enabled whatever the caller's grad mode (a filter calls it under ``no_grad``);
         the result is detached. A pose whose objective is not finite is left where it is.
         """
-        lower, upper = self.skeleton.lower.to(x), self.skeleton.upper.to(x)
         # A non-finite pose is not refined (and must not reach the cue's backward pass: grid_sample's
         # gradient at a NaN coordinate reads out of bounds); a finite stand-in runs in its place.
         finite = torch.isfinite(x).all(-1, keepdim=True)
-        x0 = torch.where(finite, x.detach(), torch.minimum(torch.maximum(torch.zeros_like(x), lower), upper))
+        x0 = torch.where(finite, x.detach(), self.clamp(torch.zeros_like(x)))
         lr = self.lr.to(x0)
         b1, b2, eps = 0.9, 0.999, 1e-8
         cur = x0.clone()
@@ -153,7 +157,7 @@ class Refiner(nn.Module):
                 k = step + 1
                 decay = 1.0 - 0.9 * step / max(1, self.steps - 1)
                 move = (m / (1 - b1**k)) / ((v / (1 - b2**k)).sqrt() + eps)
-                cur = torch.minimum(torch.maximum(cur - decay * lr * move, lower), upper)
+                cur = self.clamp(cur - decay * lr * move)
         with torch.no_grad():
             last = self.objective(cur, obs, log_prior)
         if first is None:

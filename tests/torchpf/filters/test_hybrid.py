@@ -26,6 +26,9 @@ class ShiftRefiner(torch.nn.Module):
     def evaluations(self, n_poses: int) -> int:
         return math.ceil(n_poses * (3.0 * self.steps + 1))
 
+    def clamp(self, x):
+        return x
+
     def forward(self, x, obs, log_prior=None):
         self.calls.append(x.clone())
         loss = x.square().sum(-1)
@@ -120,6 +123,18 @@ def test_estimate_mode_reports_the_best_refined_candidate_and_keeps_the_particle
         best = cands.square().sum(-1).argmin(-1)
         want = cands[torch.arange(2), best] + 0.5
         torch.testing.assert_close(sh.info["estimate"], want)
+
+
+def test_recentre_mode_shifts_the_set_to_the_refined_estimate(setup):
+    model, zs, x0 = setup
+    apf, hybrid = _filters(model, ShiftRefiner(0.5), refine_mode="recentre")
+    state = apf.init(x0)
+    ref = apf.step(state, zs[0], torch.Generator().manual_seed(3))
+    out = hybrid.step(state, zs[0], torch.Generator().manual_seed(3))
+    shift = out.info["estimate"] - ref.mean()  # the ShiftRefiner moved the chosen candidate by 0.5
+    torch.testing.assert_close(out.particles, ref.particles + shift.unsqueeze(-2))
+    torch.testing.assert_close(out.log_weights, ref.log_weights)
+    torch.testing.assert_close(out.mean(), out.info["estimate"])
 
 
 def test_bad_arguments():
