@@ -42,6 +42,8 @@ __all__ = [
     "Keypoints2D",
     "PointCloud",
     "Silhouettes",
+    "binary_mask",
+    "mask_full_scale",
 ]
 
 
@@ -52,6 +54,31 @@ def _to_tensor(x, dtype=torch.float32) -> torch.Tensor:
     if arr.dtype == np.bool_:
         arr = arr.astype(np.float32)
     return torch.as_tensor(arr, dtype=dtype)
+
+
+def mask_full_scale(mask) -> float:
+    """The value that means "foreground" in a mask image: 1 for bool and 0/1 masks, 255 for 0/255 masks
+    (8-bit, also stored in 16 bits), 65535 for 0/65535 16-bit masks. Decided from the largest value, so
+    masks written by other tools (0/1 PNGs are common) read as they were meant; an all-zero mask is empty
+    whatever its scale."""
+    if isinstance(mask, torch.Tensor):
+        top = float(mask.max()) if mask.numel() else 0.0
+    else:
+        arr = np.asarray(mask)
+        top = float(arr.max()) if arr.size else 0.0
+    return 1.0 if top <= 1.0 + 1e-6 else 255.0 if top <= 255.0 else 65535.0
+
+
+def binary_mask(mask) -> np.ndarray:
+    """(H, W) bool foreground of a mask image: bool, 0/1, 0/255 or 16-bit, grey (H, W) or colour (H, W, C)
+    (any colour channel; a 4th channel, alpha, is ignored). Foreground is above half the full scale
+    (:func:`mask_full_scale`), so anti-aliased edges split at mid-grey."""
+    arr = np.asarray(mask)
+    if arr.ndim == 3:
+        arr = arr[..., :3].max(-1)
+    if arr.dtype == np.bool_:
+        return arr.copy()
+    return arr > mask_full_scale(arr) / 2
 
 
 @dataclass(eq=False)
@@ -74,7 +101,8 @@ class Silhouettes:
     """Foreground masks of one frame, one per camera.
 
     Fields:
-        masks: (V, H, W) foreground in [0, 1] (bool, 0/1 or 0/255 uint8 accepted; 255 is rescaled).
+        masks: (V, H, W) foreground in [0, 1] (bool, 0/1, 0/255 and 16-bit masks accepted and rescaled by
+            :func:`mask_full_scale`).
         valid: (V,) bool, False for a camera whose frame is missing (its terms are skipped).
 
     Derived (cached): :meth:`blurred` soft masks for smooth look-ups, :meth:`foreground_samples` fixed
@@ -83,13 +111,16 @@ class Silhouettes:
 
     masks: torch.Tensor
     valid: torch.Tensor | None = None
-    _cache: dict = field(default_factory=dict, repr=False)
+    # not an init field: a copy (dataclasses.replace, e.g. the tracker's per-frame device copy) starts with
+    # its own empty cache instead of filling the original's
+    _cache: dict = field(default_factory=dict, repr=False, init=False)
 
     def __post_init__(self):
         m = self.masks
+        scale = mask_full_scale(m)
         m = _to_tensor(m)
-        if m.numel() and float(m.max()) > 1.0 + 1e-6:  # 0/255 images
-            m = m / 255.0
+        if scale > 1.0:  # 0/255 or 16-bit images
+            m = m / scale
         if m.ndim == 2:
             m = m[None]
         if m.ndim != 3:
@@ -233,3 +264,16 @@ class Frame:
     keypoints: Keypoints2D | None = None
     skin: DistanceMaps | None = None
     edges: DistanceMaps | None = None
+
+    def has_evidence(self) -> bool:
+        """Whether anything here can tell poses apart: a valid camera with a non-empty silhouette, a point,
+        a visible keypoint, or a valid distance map. A frame without evidence leaves every particle's
+        weight as it was (the tracker flags it: ``TrackResult.no_evidence``)."""
+        s = self.silhouettes
+        if s is not None and bool((s.valid & (s.masks > 0.5).flatten(1).any(-1)).any()):
+            return True
+        if self.points is not None and self.points.points.shape[-2] > 0:
+            return True
+        if self.keypoints is not None and bool(self.keypoints.visible.any()):
+            return True
+        return any(d is not None and bool(d.valid.any()) for d in (self.skin, self.edges))
