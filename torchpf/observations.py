@@ -265,15 +265,21 @@ class Frame:
     skin: DistanceMaps | None = None
     edges: DistanceMaps | None = None
 
-    def has_evidence(self) -> bool:
+    def has_evidence(self, fields=None) -> bool:
         """Whether anything here can tell poses apart: a valid camera with a non-empty silhouette, a point,
-        a visible keypoint, or a valid distance map. A frame without evidence leaves every particle's
-        weight as it was (the tracker flags it: ``TrackResult.no_evidence``)."""
-        s = self.silhouettes
-        if s is not None and bool((s.valid & (s.masks > 0.5).flatten(1).any(-1)).any()):
+        a visible keypoint, or a valid distance map. ``fields``: only these fields count (the ones the
+        likelihood reads, e.g. ``{"silhouettes"}``); default all. A frame without evidence leaves every
+        particle's weight as it was (the tracker flags it: ``TrackResult.no_evidence``)."""
+
+        def wanted(name: str) -> bool:
+            return (fields is None or name in fields) and getattr(self, name) is not None
+
+        if wanted("silhouettes"):
+            s = self.silhouettes
+            if bool((s.valid & (s.masks > 0.5).flatten(1).any(-1)).any()):
+                return True
+        if wanted("points") and self.points.points.shape[-2] > 0:
             return True
-        if self.points is not None and self.points.points.shape[-2] > 0:
+        if wanted("keypoints") and bool(self.keypoints.visible.any()):
             return True
-        if self.keypoints is not None and bool(self.keypoints.visible.any()):
-            return True
-        return any(d is not None and bool(d.valid.any()) for d in (self.skin, self.edges))
+        return any(wanted(name) and bool(getattr(self, name).valid.any()) for name in ("skin", "edges"))

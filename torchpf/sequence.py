@@ -42,6 +42,7 @@ __all__ = [
     "LazyFrames",
     "SequenceData",
     "SequenceError",
+    "format_frames",
     "load_truth_csv",
     "read_sequence",
     "save_truth_csv",
@@ -98,8 +99,10 @@ class SequenceData:
                 return len(x)
         return 0
 
-    def has_observations(self) -> bool:
-        """Whether any frame has a mask, a point file or a keypoint (without, there is nothing to track)."""
+    def has_observations(self, fields=None) -> bool:
+        """Whether any frame has a mask, a point file or a keypoint (without, there is nothing to track).
+        ``fields``: only these :class:`~torchpf.observations.Frame` fields count (``"silhouettes"``,
+        ``"points"``, ``"keypoints"``: the ones a likelihood reads); default all."""
 
         def any_in(frames) -> bool:
             if frames is None:
@@ -110,8 +113,15 @@ class SequenceData:
                 x is not None for row in frames for x in (row if isinstance(row, list | tuple) else [row])
             )
 
+        def wanted(name: str) -> bool:
+            return fields is None or name in fields
+
         kp = self.keypoints is not None and bool(np.isfinite(np.asarray(self.keypoints)).any())
-        return any_in(self.masks) or any_in(self.points) or kp
+        return (
+            (wanted("silhouettes") and any_in(self.masks))
+            or (wanted("points") and any_in(self.points))
+            or (wanted("keypoints") and kp)
+        )
 
     def frame(self, t: int) -> Frame:
         """The observations of frame ``t`` as a :class:`~torchpf.observations.Frame` (read from disk for a
@@ -242,6 +252,11 @@ def _format_runs(runs: list[tuple[int, int]], limit: int = 6) -> str:
     return text + (f" and {len(runs) - limit} more" if len(runs) > limit else "")
 
 
+def format_frames(frames: list[int], limit: int = 6) -> str:
+    """Sorted frame numbers as runs, '3, 5-9, 12 and 4 more' (messages and reports)."""
+    return _format_runs(_runs(frames), limit)
+
+
 def _runs(idx: list[int]) -> list[tuple[int, int]]:
     """Sorted ints -> inclusive runs of consecutive values."""
     runs: list[list[int]] = []
@@ -265,7 +280,7 @@ def _frame_count(root: str, sources: dict[str, dict[int, str]], listed: tuple[in
             if late:
                 raise SequenceError(
                     f"{files[max(late)]}: frame {max(late)} is past the {T} frames that {what} lists "
-                    f"({len(late)} file(s) in {folder} are: frames {_format_runs(_runs(sorted(late)))})"
+                    f"({len(late)} file(s) in {folder} are: frames {format_frames(sorted(late))})"
                 )
         return T
     present = sorted(set().union(*[files.keys() for files in sources.values()]))
