@@ -625,6 +625,58 @@ def _camera_from_fs_map(m: Mapping, name: str, source: str) -> Camera:
     return Camera(K, R, t, None if dist is None else dist[:5], width=w, height=h, name=name)
 
 
+# A FileStorage matrix larger than this is no camera parameter (K 3x3, dist up to 1x14, R 3x3, t 3x1).
+_FS_MAX_MATRIX = 64
+
+
+def _read_fs_yaml(text: str, path: str) -> dict:
+    """A FileStorage YAML file (``%YAML:1.0``, ``!!opencv-matrix`` maps) read with PyYAML. OpenCV's own
+    parser is not used for YAML: on some malformed files it aborts the process, which no ``except`` can
+    turn into an error message."""
+    import yaml
+
+    class Loader(yaml.SafeLoader):
+        pass
+
+    def matrix(loader, node):
+        m = loader.construct_mapping(node, deep=True)
+        rows, cols, values = m.get("rows"), m.get("cols"), m.get("data")
+        ok = all(type(v) is int and 0 < v <= _FS_MAX_MATRIX for v in (rows, cols))
+        if not ok or not isinstance(values, list) or len(values) != rows * cols:
+            raise CameraFileError(
+                f"{path}: line {node.start_mark.line + 1}: an opencv-matrix needs rows and cols (1 to "
+                f"{_FS_MAX_MATRIX}) and rows x cols numbers in data"
+            )
+        return _checked_array(values, None, f"{path}: line {node.start_mark.line + 1}").reshape(rows, cols)
+
+    Loader.add_constructor("tag:yaml.org,2002:opencv-matrix", matrix)
+    body = text.lstrip()
+    body = body.split("\n", 1)[1] if "\n" in body else ""  # the "%YAML:1.0" line is not a YAML directive
+    try:
+        return yaml.load(body, Loader=Loader)  # noqa: S506 (a SafeLoader with one more constructor)
+    except yaml.YAMLError as e:
+        raise CameraFileError(f"{path}: not valid FileStorage YAML ({_first_line(e)})") from None
+
+
+def _read_fs_xml(path: str) -> dict:
+    """A FileStorage XML file, read by OpenCV."""
+    import cv2
+
+    try:
+        fs = cv2.FileStorage(path, cv2.FILE_STORAGE_READ)
+    except (cv2.error, SystemError, UnicodeError) as e:  # OpenCV's parser raises on malformed files
+        raise CameraFileError(f"{path}: not a readable OpenCV FileStorage file ({_first_line(e)})") from None
+    if not fs.isOpened():
+        raise CameraFileError(f"{path}: OpenCV cannot read this file as FileStorage YAML/XML")
+    try:
+        root = fs.root()
+        return {k: _fs_value(root.getNode(k)) for k in root.keys()}
+    except (cv2.error, SystemError, UnicodeError, ValueError) as e:
+        raise CameraFileError(f"{path}: not a readable OpenCV FileStorage file ({_first_line(e)})") from None
+    finally:
+        fs.release()
+
+
 def _first_line(e: BaseException) -> str:
     lines = str(e).strip().splitlines()
     return f"{type(e).__name__}: {lines[-1] if lines else ''}"
@@ -638,26 +690,15 @@ def load_opencv_camera(path: str | os.PathLike, name: str | None = None) -> Came
     ``image_size``, optional extrinsics ``R`` or ``rvec`` and ``T``/``tvec``; identity pose when absent),
     or one top-level map per camera holding those keys. Returns a :class:`CameraRig`.
     """
-    import cv2
-
     path = os.fspath(path)
     try:
-        fs = cv2.FileStorage(path, cv2.FILE_STORAGE_READ)
-    except (cv2.error, SystemError, UnicodeError) as e:  # OpenCV's parser raises on malformed files
-        raise CameraFileError(
-            f"{path}: not a readable OpenCV FileStorage YAML/XML file ({_first_line(e)})"
-        ) from None
-    if not fs.isOpened():
-        raise CameraFileError(f"{path}: OpenCV cannot read this file as FileStorage YAML/XML")
-    try:
-        root = fs.root()
-        data = {k: _fs_value(root.getNode(k)) for k in root.keys()}
-    except (cv2.error, SystemError, UnicodeError, ValueError) as e:
-        raise CameraFileError(
-            f"{path}: not a readable OpenCV FileStorage YAML/XML file ({_first_line(e)})"
-        ) from None
-    finally:
-        fs.release()
+        with open(path, encoding="utf-8") as f:
+            text = f.read()
+    except UnicodeDecodeError as e:
+        raise CameraFileError(f"{path}: not UTF-8 text ({e.reason} at byte {e.start})") from None
+    data = _read_fs_yaml(text, path) if text.lstrip().startswith("%YAML") else _read_fs_xml(path)
+    if not isinstance(data, Mapping):
+        raise CameraFileError(f"{path}: expected a map of calibration keys or of cameras")
     if any(alias in data for alias in _FS_KEYS["K"]):
         # a name taken from the file name is made safe; a name given by the caller is checked
         stem = os.path.splitext(os.path.basename(path))[0]
