@@ -469,17 +469,37 @@ _BASE: dict[str, str] = {}
 LOADERS = ("sequence_dir", "cameras_yaml", "filestorage", "keypoints_npz")
 
 
+SECONDS_PER_EXAMPLE = 30
+
+
+class _TooSlow(BaseException):  # not an Exception: the property check must not classify it
+    pass
+
+
 def _child(loader: str, start: int, stop: int) -> None:
     """Print ``seed<TAB>problem`` (empty when the property holds) for each seed, flushed line by line."""
     import resource
+    import signal
     import sys
     import tempfile
 
-    # a loader that tries to allocate gigabytes fails with MemoryError here instead of taking the machine
-    resource.setrlimit(resource.RLIMIT_AS, (6 * 2**30, resource.getrlimit(resource.RLIMIT_AS)[1]))
+    # a loader that tries to allocate gigabytes fails with MemoryError here instead of taking the machine,
+    # one that loops over a hundred million frames is stopped after SECONDS_PER_EXAMPLE
+    resource.setrlimit(resource.RLIMIT_AS, (3 * 2**30, resource.getrlimit(resource.RLIMIT_AS)[1]))
+
+    def too_slow(signum, frame):
+        raise _TooSlow(f"time: no answer within {SECONDS_PER_EXAMPLE} s")
+
+    signal.signal(signal.SIGALRM, too_slow)
     work = tempfile.mkdtemp(prefix="torchpf-fuzz-")
     for seed in range(start, stop):
-        problem = run_example(loader, seed, os.path.join(work, "x"))
+        signal.alarm(SECONDS_PER_EXAMPLE)
+        try:
+            problem = run_example(loader, seed, os.path.join(work, "x"))
+        except _TooSlow as e:
+            problem = str(e)
+        finally:
+            signal.alarm(0)
         line = (problem or "").replace("\n", " ")
         sys.stdout.write(f"{seed}\t{line}\n")
         sys.stdout.flush()
