@@ -28,6 +28,7 @@ import operator
 import os
 import re
 import struct
+import tokenize
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -343,10 +344,14 @@ def _read_mask(path: str, size: tuple[int, int]) -> np.ndarray:
     return np.where(binary_mask(m), np.uint8(255), np.uint8(0))
 
 
-def _npy_header(path: str) -> tuple[tuple[int, ...], np.dtype]:
-    """Shape and dtype of a ``.npy`` file, checked against the file's size before anything is read."""
+# What numpy's .npy header parser raises on a damaged header (it tokenizes the header's Python literal).
+_NPY_ERRORS = (ValueError, OSError, EOFError, SyntaxError, tokenize.TokenError)
+
+
+def _read_npy_header(f, path: str) -> tuple[tuple[int, ...], np.dtype]:
+    """Shape and dtype from the header of the ``.npy`` data open in ``f`` (left at the data)."""
     fmt = np.lib.format
-    with open(path, "rb") as f:
+    try:
         version = fmt.read_magic(f)
         if version == (1, 0):
             shape, _, dtype = fmt.read_array_header_1_0(f)
@@ -354,6 +359,17 @@ def _npy_header(path: str) -> tuple[tuple[int, ...], np.dtype]:
             shape, _, dtype = fmt.read_array_header_2_0(f)
         else:
             raise SequenceError(f"{path}: unsupported .npy version {version}")
+    except SequenceError:
+        raise
+    except _NPY_ERRORS as e:
+        raise SequenceError(f"{path}: not a readable .npy header ({type(e).__name__}: {e})") from None
+    return shape, dtype
+
+
+def _npy_header(path: str) -> tuple[tuple[int, ...], np.dtype]:
+    """Shape and dtype of a ``.npy`` file, checked against the file's size before anything is read."""
+    with open(path, "rb") as f:
+        shape, dtype = _read_npy_header(f, path)
         offset = f.tell()
     if dtype.hasobject or dtype.kind not in "fiu":
         raise SequenceError(f"{path}: expected numbers, the file holds {dtype}")
@@ -371,7 +387,7 @@ def _read_points(path: str) -> np.ndarray:
         arr = np.load(path, allow_pickle=False)
     except SequenceError:
         raise
-    except (ValueError, OSError, EOFError) as e:
+    except _NPY_ERRORS as e:
         raise SequenceError(f"{path}: not a readable .npy file ({type(e).__name__}: {e})") from None
     arr = arr.astype(np.float32)
     if not np.isfinite(arr).all():
@@ -382,6 +398,7 @@ def _read_points(path: str) -> np.ndarray:
 def _read_keypoints(path: str, names: list[str]) -> tuple[np.ndarray, list[str]]:
     """uv (T, V, J, 2) float32 in the order of ``names`` (NaN = missing) and the joint names."""
     import zipfile
+    import zlib
 
     try:
         with zipfile.ZipFile(path) as z:
@@ -390,13 +407,7 @@ def _read_keypoints(path: str, names: list[str]) -> tuple[np.ndarray, list[str]]
                 raise SequenceError(f"{path}: no 'uv' array")
             for key, info in members.items():
                 with z.open(info) as f:
-                    version = np.lib.format.read_magic(f)
-                    read = (
-                        np.lib.format.read_array_header_1_0
-                        if version == (1, 0)
-                        else np.lib.format.read_array_header_2_0
-                    )
-                    shape, _, dtype = read(f)
+                    shape, dtype = _read_npy_header(f, f"{path}: entry {key!r}")
                 if math.prod(shape) * dtype.itemsize > info.file_size:
                     raise SequenceError(f"{path}: entry {key!r} says {shape} {dtype}, more than it holds")
         with np.load(path, allow_pickle=False) as z:
@@ -405,7 +416,7 @@ def _read_keypoints(path: str, names: list[str]) -> tuple[np.ndarray, list[str]]
             cams = [str(c) for c in z["cameras"]] if "cameras" in z.files else None
     except SequenceError:
         raise
-    except (zipfile.BadZipFile, ValueError, OSError, EOFError, KeyError, RuntimeError) as e:
+    except (zipfile.BadZipFile, zlib.error, KeyError, RuntimeError, *_NPY_ERRORS) as e:
         raise SequenceError(f"{path}: not a readable keypoints .npz ({type(e).__name__}: {e})") from None
     if uv.dtype.kind not in "fiu" or uv.ndim != 4 or uv.shape[-1] != 2:
         raise SequenceError(
