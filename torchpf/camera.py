@@ -650,8 +650,8 @@ def _read_fs_yaml(text: str, path: str) -> dict:
         return _checked_array(values, None, f"{path}: line {node.start_mark.line + 1}").reshape(rows, cols)
 
     Loader.add_constructor("tag:yaml.org,2002:opencv-matrix", matrix)
-    body = text.lstrip()
-    body = body.split("\n", 1)[1] if "\n" in body else ""  # the "%YAML:1.0" line is not a YAML directive
+    # the "%YAML:1.0" line is no YAML directive: commented out, so that line numbers stay the file's
+    body = re.sub(r"^(\s*)%YAML", r"\1#%YAML", text, count=1)
     try:
         return yaml.load(body, Loader=Loader)  # noqa: S506 (a SafeLoader with one more constructor)
     except yaml.YAMLError as e:

@@ -296,6 +296,12 @@ def test_opencv_file_errors_name_the_file(tmp_path):
     path.write_text("%YAML:1.0\n---\ncamera_matrix: !!opencv-matrix\n   rows: 3\n   cols: [\n")
     with pytest.raises(CameraFileError, match="calib.yml"):
         load_cameras(path)
+    path.write_text(
+        "%YAML:1.0\n---\ncamera_matrix: !!opencv-matrix\n   rows: 100000\n   cols: 100000\n   dt: d\n"
+        "   data: [1.0]\nimage_width: 4\nimage_height: 3\n"
+    )
+    with pytest.raises(CameraFileError, match=r"calib\.yml: line 3: an opencv-matrix needs rows and cols"):
+        load_cameras(path)  # refused before allocating 10^10 numbers
     path.write_bytes(b"cameras:\n  c0: \xff\xfe\n")
     with pytest.raises(CameraFileError, match="calib.yml: not UTF-8"):
         load_cameras(path)
