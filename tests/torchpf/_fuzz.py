@@ -218,6 +218,17 @@ def _weird_mask(rng: random.Random) -> np.ndarray:
     return (m * 255).astype(np.uint8)[: H // 2, : W // 2].copy()  # same aspect, half size
 
 
+_BLOCK = np.zeros((H, W), np.uint8)
+_BLOCK[3:8, 4:9] = 255
+
+
+def _put(path: str, data: bytes) -> None:
+    """Write ``data``, creating the folder (an earlier mutation may have removed it)."""
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    with open(path, "wb") as f:
+        f.write(data)
+
+
 def mutate_sequence(rng: random.Random, root: str) -> None:
     """Write the base sequence to ``root`` and apply 1-3 directory-level mutations."""
     write_base_sequence(root)
@@ -227,14 +238,13 @@ def mutate_sequence(rng: random.Random, root: str) -> None:
         cam = rng.choice(["cam0", "cam1"])
         if op == 0:  # a stray frame file
             idx = rng.choice([4, 5, 7, 100, 1000000, 99999999, 10**12 - 1])
-            shutil.copy(
-                os.path.join(root, "masks", cam, "000000.png"), os.path.join(root, "masks", cam, f"{idx}.png")
-            )
+            _put(os.path.join(root, "masks", cam, f"{idx}.png"), _png(_BLOCK))
         elif op == 1 and files:  # a file removed
             os.remove(rng.choice(files))
         elif op == 2:  # a mask stored otherwise
-            with open(os.path.join(root, "masks", cam, f"{rng.randrange(N_FRAMES):06d}.png"), "wb") as f:
-                f.write(_png(_weird_mask(rng)))
+            _put(
+                os.path.join(root, "masks", cam, f"{rng.randrange(N_FRAMES):06d}.png"), _png(_weird_mask(rng))
+            )
         elif op == 3:  # a corrupted file
             victims = [f for f in files if f.endswith((".png", ".npy", ".npz", ".csv", ".yaml"))]
             if victims:
@@ -261,8 +271,7 @@ def mutate_sequence(rng: random.Random, root: str) -> None:
             if name == "cam7":
                 os.makedirs(target, exist_ok=True)
             else:
-                with open(target, "wb") as f:
-                    f.write(b"")
+                _put(target, b"")
         elif op == 7:  # points with odd content
             arr = rng.choice(
                 [
@@ -275,15 +284,16 @@ def mutate_sequence(rng: random.Random, root: str) -> None:
                     np.zeros((2, 3), np.complex64),
                 ]
             )
-            with open(os.path.join(root, "points", f"{rng.randrange(N_FRAMES + 2):06d}.npy"), "wb") as f:
-                f.write(_npy(arr))
+            _put(os.path.join(root, "points", f"{rng.randrange(N_FRAMES + 2):06d}.npy"), _npy(arr))
         elif op == 8:  # a .npy header promising more than the file holds
             b = io.BytesIO()
             np.lib.format.write_array_header_1_0(
                 b, {"descr": "<f4", "fortran_order": False, "shape": (10**10, 3)}
             )
-            with open(os.path.join(root, "points", "000000.npy"), "wb") as f:
-                f.write(b.getvalue() + np.zeros((5, 3), np.float32).tobytes())
+            _put(
+                os.path.join(root, "points", "000000.npy"),
+                b.getvalue() + np.zeros((5, 3), np.float32).tobytes(),
+            )
         elif op == 9:
             mutate_keypoints_file(rng, os.path.join(root, "keypoints.npz"))
         elif op == 10:  # a whole folder gone
