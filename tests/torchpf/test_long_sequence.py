@@ -1,10 +1,10 @@
 """A long sequence streams: memory stays flat over 5,000 frames and the CSV is complete (issue 16 item 9).
 
-The sequence is written with OpenCV directly (a moving block per camera, no torchpf.synth: nothing here is
-scored for accuracy). The likelihood is a cheap stand-in that builds the per-frame caches of the silhouette
-cues (blurred masks, the dual cue's foreground samples) and scores the particles against them, so the run
-takes seconds while exercising everything a frame allocates. RSS is sampled from /proc every 250 frames
-while the tracker reads them."""
+The sequence is written with OpenCV directly (a moving block, no torchpf.synth: nothing here is scored for
+accuracy). The likelihood is the cheap stand-in of ``benchmarks.stream_memory``: it builds the per-frame
+caches of the silhouette cues (blurred masks, the dual cue's foreground samples) and scores the particles
+against them, so the run takes seconds while exercising everything a frame allocates. RSS is sampled from
+/proc every 250 frames while the tracker reads them."""
 
 import os
 import sys
@@ -13,8 +13,8 @@ import cv2
 import numpy as np
 import pytest
 import torch
-from torch import nn
 
+from benchmarks.stream_memory import CacheTouchingLikelihood
 from torchpf import Skeleton
 from torchpf.assets import path
 from torchpf.camera import camera_ring, save_cameras
@@ -29,17 +29,6 @@ T, W, H = 5000, 64, 48
 def _rss_kib() -> float:
     with open("/proc/self/statm") as f:
         return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 1024
-
-
-class _CacheTouching(nn.Module):
-    """log-likelihood -|x[:2] - c|^2, c from the foreground samples of the frame's masks (their caches)."""
-
-    def forward(self, x, obs):
-        sil = obs.silhouettes
-        sil.blurred(1.5)
-        pts, ok = sil.foreground_samples(64)
-        c = pts[ok].mean((0, 1)).to(x) / 100 if bool(ok.any()) else x.new_zeros(2)
-        return -((x[..., :2] - c) ** 2).sum(-1)
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc/self/statm")
@@ -68,7 +57,7 @@ def test_memory_is_flat_over_5000_frames_and_the_csv_complete(tmp_path):
     tracker = Tracker(
         skel,
         seq.cameras,
-        likelihood=_CacheTouching(),
+        likelihood=CacheTouchingLikelihood(),
         dynamics=GaussianRandomWalk(torch.full((D,), 0.01)),
         filter="sir",
         n_particles=8,
