@@ -891,6 +891,9 @@ FOREIGN_SETUPS: dict[str, Callable[..., Any]] = {
     "calibrated_hybrid_recentre": calibrated_setup(
         filter="hybrid", filter_options={"refine_mode": "recentre"}
     ),
+    "calibrated_hybrid_tau8": calibrated_setup(
+        filter="hybrid", filter_options={"refine_options": {"cue_options": {"tau": 8.0}}}
+    ),
     "calibrated_hybrid_particles": calibrated_setup(
         filter="hybrid", filter_options={"refine_mode": "particles", "refine_prior": True}
     ),

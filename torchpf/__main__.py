@@ -174,7 +174,9 @@ def _track(args) -> int:
     skel = Skeleton.from_urdf(_require_file(args.skeleton, "skeleton"))
     if not os.path.isdir(args.sequence):
         raise CliError(f"sequence directory not found: {args.sequence}")
-    seq = read_sequence(args.sequence)
+    if os.path.isdir(args.out):
+        raise CliError(f"--out {args.out} is a directory; give the CSV file to write")
+    seq = read_sequence(args.sequence)  # lazy: frames are read one at a time while tracking
     if args.device and args.device.startswith("cuda") and not torch.cuda.is_available():
         raise CliError("--device cuda: no CUDA device is available")
     kwargs = {}
@@ -212,14 +214,20 @@ def _track(args) -> int:
     if seq.times is not None and len(seq.times) > 1 and "fps" not in kwargs:
         kwargs["fps"] = 1.0 / float(seq.times[1] - seq.times[0])
     tracker = Tracker.from_config(kwargs, skeleton=skel, cameras=seq.cameras)
-    result = tracker.track(seq, seed=args.seed)
-    result.save_csv(args.out)
+    # the CSV is written as frames are tracked: OUT.partial keeps the finished frames if the run stops
+    result = tracker.track(seq, seed=args.seed, out=args.out)
     n_failed = int(result.failed.sum())
+    blind = result.no_evidence.nonzero().flatten().tolist()
     print(
         f"tracked {len(result.angles)} frames with {tracker.filter_name} ({tracker.n_particles} likelihood "
         f"evaluations/frame) in {result.seconds:.1f} s: mean ESS {float(result.ess.mean()):.1f}, "
-        f"{n_failed} failed frames, log-evidence {result.log_evidence:.1f}; wrote {args.out}"
+        f"{n_failed} failed frames, {len(blind)} frames without evidence, log-evidence "
+        f"{result.log_evidence:.1f}; wrote {args.out}"
     )
+    if blind:
+        from torchpf.sequence import format_frames
+
+        print(f"frames without evidence (no usable mask, point or keypoint): {format_frames(blind)}")
     if seq.truth is not None:
         from torchpf import metrics
 

@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 
@@ -53,6 +54,7 @@ __all__ = [
     "CameraFileError",
     "CameraRig",
     "camera_ring",
+    "check_camera_name",
     "load_cameras",
     "load_opencv_camera",
     "look_at",
@@ -63,6 +65,57 @@ __all__ = [
 
 class CameraFileError(ValueError):
     """A camera file is missing a key or holds a value of the wrong shape; the message names both."""
+
+
+# Camera names become folder names (masks/<camera>/): letters, digits, '_', '-', '.', not starting with '.'
+# or '-', so no name reaches outside the sequence (no '/', '..', absolute paths) or hides its folder.
+_SAFE_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.\-]{0,63}")
+_MAX_IMAGE_SIDE = 1 << 16  # pixels; larger sizes are typos (or overflow on the way to int)
+
+
+def check_camera_name(name, source: str = "<cameras>") -> str:
+    """``name`` if it is a safe camera name (1-64 of ``A-Z a-z 0-9 _ - .``, not starting with ``.`` or
+    ``-``), else :class:`CameraFileError` naming ``source`` and the camera. Names become folder names of a
+    sequence directory, so this is checked where files are read and written."""
+    if not isinstance(name, str) or not _SAFE_NAME.fullmatch(name):
+        raise CameraFileError(
+            f"{source}: camera name {name!r} is not a safe identifier (1-64 letters, digits, '_', '-', '.', "
+            f"not starting with '.' or '-'): it names the folder masks/<camera>/"
+        )
+    return name
+
+
+def _check_size(value, key: str, where: str) -> int:
+    v = value
+    if isinstance(v, np.generic):
+        v = v.item()
+    if (
+        isinstance(v, bool)
+        or not isinstance(v, (int, float))
+        or (isinstance(v, float) and not v.is_integer())
+    ):
+        raise CameraFileError(f"{where}: key {key!r} must be a positive integer, got {value!r}")
+    if not 0 < v <= _MAX_IMAGE_SIDE:
+        raise CameraFileError(f"{where}: key {key!r} must be between 1 and {_MAX_IMAGE_SIDE}, got {value!r}")
+    return int(v)
+
+
+def _check_rotation(R: np.ndarray, where: str) -> None:
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-5) or np.linalg.det(R) < 0:
+        raise CameraFileError(f"{where}: key 'R' is not a rotation matrix (R R^T != I or det < 0)")
+
+
+def _check_intrinsics(K: np.ndarray, where: str) -> None:
+    """A pinhole K: positive focal lengths, bottom row (0, 0, 1), K[1, 0] = 0 (the projection ignores it)."""
+    if K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise CameraFileError(
+            f"{where}: key 'K' needs positive focal lengths fx = K[0][0], fy = K[1][1], got {K[0, 0]!r}, "
+            f"{K[1, 1]!r}"
+        )
+    if not np.array_equal(K[2], [0.0, 0.0, 1.0]) or K[1, 0] != 0:
+        raise CameraFileError(
+            f"{where}: key 'K' must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]], got rows {K.tolist()}"
+        )
 
 
 def project_points(
@@ -270,7 +323,7 @@ class Camera:
     @classmethod
     def from_dict(cls, d: Mapping, name: str = "cam", source: str = "<dict>") -> Camera:
         """Inverse of :meth:`to_dict`; errors name ``source``, the camera and the key."""
-        where = f"{source}: camera {name!r}"
+        where = f"{source}: camera {check_camera_name(name, source)!r}"
         if not isinstance(d, Mapping):
             raise CameraFileError(f"{where}: expected a mapping of K, dist, R, t, width, height")
         unknown = set(d) - {"K", "dist", "R", "t", "width", "height"}
@@ -281,6 +334,7 @@ class Camera:
             if key not in d:
                 raise CameraFileError(f"{where}: missing key {key!r}")
             values[key] = _checked_array(d[key], shape, f"{where}: key {key!r}")
+        _check_intrinsics(values["K"], where)
         dist = d.get("dist")
         if dist is not None:
             arr = _checked_array(dist, None, f"{where}: key 'dist'").reshape(-1)
@@ -293,13 +347,9 @@ class Camera:
         for key in ("width", "height"):
             if key not in d:
                 raise CameraFileError(f"{where}: missing key {key!r}")
-            v = d[key]
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or v <= 0 or int(v) != v:
-                raise CameraFileError(f"{where}: key {key!r} must be a positive integer, got {v!r}")
-            size[key] = int(v)
+            size[key] = _check_size(d[key], key, where)
         R = values["R"]
-        if not np.allclose(R @ R.T, np.eye(3), atol=1e-5) or np.linalg.det(R) < 0:
-            raise CameraFileError(f"{where}: key 'R' is not a rotation matrix (R R^T != I or det < 0)")
+        _check_rotation(R, where)
         return cls(values["K"], R, values["t"], dist, name=name, **size)
 
 
@@ -576,11 +626,12 @@ def _camera_from_fs_map(m: Mapping, name: str, source: str) -> Camera:
                 return m[alias]
         return None
 
-    where = f"{source}: camera {name!r}"
+    where = f"{source}: camera {check_camera_name(name, source)!r}"
     K = pick("K")
     if K is None:
         raise CameraFileError(f"{where}: missing key 'camera_matrix' (or one of {_FS_KEYS['K']})")
     K = _checked_array(K, (3, 3), f"{where}: key 'camera_matrix'")
+    _check_intrinsics(K, where)
     dist = pick("dist")
     dist = None if dist is None else _checked_array(dist, None, f"{where}: key 'distortion'").reshape(-1)
     R, rvec = pick("R"), pick("rvec")
@@ -600,11 +651,76 @@ def _camera_from_fs_map(m: Mapping, name: str, source: str) -> Camera:
     w, h = pick("width"), pick("height")
     size = pick("size")
     if (w is None or h is None) and size is not None:
-        sz = np.asarray(size, dtype=np.float64).reshape(-1)
+        sz = _checked_array(size, None, f"{where}: key 'image_size'").reshape(-1)
+        if sz.size != 2:
+            raise CameraFileError(f"{where}: key 'image_size' must hold 2 numbers (width, height)")
         w, h = sz[0], sz[1]  # OpenCV writes Size as (width, height)
     if w is None or h is None:
         raise CameraFileError(f"{where}: missing key 'image_width'/'image_height' (or 'image_size')")
-    return Camera(K, R, t, dist, width=int(w), height=int(h), name=name)
+    if dist is not None and dist.size > 5 and np.any(dist[5:] != 0):
+        raise CameraFileError(
+            f"{where}: key 'distortion' has {dist.size} numbers; only k1 k2 p1 p2 k3 are used"
+        )
+    _check_rotation(R, where)
+    w, h = _check_size(w, "image_width", where), _check_size(h, "image_height", where)
+    return Camera(K, R, t, None if dist is None else dist[:5], width=w, height=h, name=name)
+
+
+# A FileStorage matrix larger than this is no camera parameter (K 3x3, dist up to 1x14, R 3x3, t 3x1).
+_FS_MAX_MATRIX = 64
+
+
+def _read_fs_yaml(text: str, path: str) -> dict:
+    """A FileStorage YAML file (``%YAML:1.0``, ``!!opencv-matrix`` maps) read with PyYAML. OpenCV's own
+    parser is not used for YAML: on some malformed files it aborts the process, which no ``except`` can
+    turn into an error message."""
+    import yaml
+
+    class Loader(yaml.SafeLoader):
+        pass
+
+    def matrix(loader, node):
+        m = loader.construct_mapping(node, deep=True)
+        rows, cols, values = m.get("rows"), m.get("cols"), m.get("data")
+        ok = all(type(v) is int and 0 < v <= _FS_MAX_MATRIX for v in (rows, cols))
+        if not ok or not isinstance(values, list) or len(values) != rows * cols:
+            raise CameraFileError(
+                f"{path}: line {node.start_mark.line + 1}: an opencv-matrix needs rows and cols (1 to "
+                f"{_FS_MAX_MATRIX}) and rows x cols numbers in data"
+            )
+        return _checked_array(values, None, f"{path}: line {node.start_mark.line + 1}").reshape(rows, cols)
+
+    Loader.add_constructor("tag:yaml.org,2002:opencv-matrix", matrix)
+    # the "%YAML:1.0" line is no YAML directive: commented out, so that line numbers stay the file's
+    body = re.sub(r"^(\s*)%YAML", r"\1#%YAML", text, count=1)
+    try:
+        return yaml.load(body, Loader=Loader)  # noqa: S506 (a SafeLoader with one more constructor)
+    except yaml.YAMLError as e:
+        raise CameraFileError(f"{path}: not valid FileStorage YAML ({_first_line(e)})") from None
+
+
+def _read_fs_xml(path: str) -> dict:
+    """A FileStorage XML file, read by OpenCV."""
+    import cv2
+
+    try:
+        fs = cv2.FileStorage(path, cv2.FILE_STORAGE_READ)
+    except (cv2.error, SystemError, UnicodeError) as e:  # OpenCV's parser raises on malformed files
+        raise CameraFileError(f"{path}: not a readable OpenCV FileStorage file ({_first_line(e)})") from None
+    if not fs.isOpened():
+        raise CameraFileError(f"{path}: OpenCV cannot read this file as FileStorage YAML/XML")
+    try:
+        root = fs.root()
+        return {k: _fs_value(root.getNode(k)) for k in root.keys()}
+    except (cv2.error, SystemError, UnicodeError, ValueError) as e:
+        raise CameraFileError(f"{path}: not a readable OpenCV FileStorage file ({_first_line(e)})") from None
+    finally:
+        fs.release()
+
+
+def _first_line(e: BaseException) -> str:
+    lines = str(e).strip().splitlines()
+    return f"{type(e).__name__}: {lines[-1] if lines else ''}"
 
 
 def load_opencv_camera(path: str | os.PathLike, name: str | None = None) -> CameraRig:
@@ -615,19 +731,19 @@ def load_opencv_camera(path: str | os.PathLike, name: str | None = None) -> Came
     ``image_size``, optional extrinsics ``R`` or ``rvec`` and ``T``/``tvec``; identity pose when absent),
     or one top-level map per camera holding those keys. Returns a :class:`CameraRig`.
     """
-    import cv2
-
     path = os.fspath(path)
-    fs = cv2.FileStorage(path, cv2.FILE_STORAGE_READ)
-    if not fs.isOpened():
-        raise CameraFileError(f"{path}: OpenCV cannot read this file as FileStorage YAML/XML")
     try:
-        root = fs.root()
-        data = {k: _fs_value(root.getNode(k)) for k in root.keys()}
-    finally:
-        fs.release()
+        with open(path, encoding="utf-8") as f:
+            text = f.read()
+    except UnicodeDecodeError as e:
+        raise CameraFileError(f"{path}: not UTF-8 text ({e.reason} at byte {e.start})") from None
+    data = _read_fs_yaml(text, path) if text.lstrip().startswith("%YAML") else _read_fs_xml(path)
+    if not isinstance(data, Mapping):
+        raise CameraFileError(f"{path}: expected a map of calibration keys or of cameras")
     if any(alias in data for alias in _FS_KEYS["K"]):
-        cam_name = name or os.path.splitext(os.path.basename(path))[0]
+        # a name taken from the file name is made safe; a name given by the caller is checked
+        stem = os.path.splitext(os.path.basename(path))[0]
+        cam_name = name or re.sub(r"[^A-Za-z0-9_.\-]", "_", stem)[:64].lstrip(".-") or "cam"
         return CameraRig([_camera_from_fs_map(data, cam_name, path)])
     cams = [_camera_from_fs_map(v, k, path) for k, v in data.items() if isinstance(v, Mapping)]
     if not cams:
@@ -648,8 +764,11 @@ def load_cameras(path: str | os.PathLike) -> CameraRig:
     import yaml
 
     path = os.fspath(path)
-    with open(path, encoding="utf-8") as f:
-        text = f.read()
+    try:
+        with open(path, encoding="utf-8") as f:
+            text = f.read()
+    except UnicodeDecodeError as e:
+        raise CameraFileError(f"{path}: not UTF-8 text ({e.reason} at byte {e.start})") from None
     if _is_filestorage(text):
         return load_opencv_camera(path)
     try:
@@ -666,8 +785,14 @@ def load_cameras(path: str | os.PathLike) -> CameraRig:
     cams_data = data["cameras"]
     if not isinstance(cams_data, Mapping) or not cams_data:
         raise CameraFileError(f"{path}: key 'cameras' must map camera names to camera entries")
-    cams = [Camera.from_dict(v, name=str(k), source=path) for k, v in cams_data.items()]
+    cams = [
+        Camera.from_dict(v, name=str(k) if type(k) is int else k, source=path) for k, v in cams_data.items()
+    ]
     depth = data.get("depth_camera")
+    if depth is not None and not isinstance(depth, str):
+        raise CameraFileError(f"{path}: key 'depth_camera' must be a camera name, got {depth!r}")
+    if len({c.name for c in cams}) != len(cams):
+        raise CameraFileError(f"{path}: two cameras have the same name")
     if depth is not None and str(depth) not in {c.name for c in cams}:
         raise CameraFileError(f"{path}: key 'depth_camera' names {depth!r}, not one of the cameras")
     return CameraRig(cams, depth_camera=None if depth is None else str(depth))
@@ -687,6 +812,8 @@ def save_cameras(
     import yaml
 
     rig = cameras if isinstance(cameras, CameraRig) else CameraRig(cameras)
+    for name in rig:
+        check_camera_name(name, os.fspath(path))
     depth = depth_camera if depth_camera is not None else rig.depth_camera
     if depth is not None and depth not in rig:
         raise ValueError(f"depth_camera {depth!r} is not one of {list(rig)}")

@@ -23,6 +23,7 @@ Example::
 
 from __future__ import annotations
 
+import math
 import os
 import tempfile
 from collections.abc import Sequence
@@ -68,16 +69,90 @@ def _rebuild_error(message, path, line, column):
     return MocapFormatError(message, path=path, line=line, column=column)
 
 
+# Hidden temporaries are named ``.tmp-<pid>-<random>-<target name>``: the pid says whether the writer is
+# still alive, so a later write can remove what a killed one (SIGKILL, power loss) left behind.
+_TMP_PREFIX = ".tmp-"
+_STALE_AGE_S = 24 * 3600.0  # pids are reused: past this age a temporary is stale whatever its pid says
+_LEGACY_STALE_AGE_S = 3600.0  # temporaries of older versions carry no pid
+_CLEAN_INTERVAL_S = 60.0  # a folder is scanned at most this often (write_sequence writes thousands of files)
+_last_clean: dict[str, float] = {}
+
+
+def _pid_alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True  # another thread of this process may be writing it
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OSError):
+        return True  # exists (another user's) or cannot tell: keep the file
+    return True
+
+
+def clean_stale_temporaries(folder: str | os.PathLike) -> list[str]:
+    """Remove the hidden ``.tmp-*`` files that an interrupted :func:`write_atomic` left in ``folder``.
+
+    A temporary is stale when the process that wrote it is gone, or when it is older than a day (older
+    than an hour for temporaries without a pid in the name). Called by :func:`write_atomic` (at most once a
+    minute per folder); returns the removed paths.
+    """
+    import re
+    import time
+
+    folder = os.fspath(folder)
+    now = time.time()
+    removed = []
+    try:
+        entries = list(os.scandir(folder))
+    except OSError:
+        return removed
+    for entry in entries:
+        if not entry.name.startswith(_TMP_PREFIX):
+            continue
+        try:
+            if not entry.is_file(follow_symlinks=False):
+                continue
+            age = now - entry.stat(follow_symlinks=False).st_mtime
+        except OSError:
+            continue
+        m = re.match(r"\.tmp-(\d+)-", entry.name)
+        if m is not None:
+            stale = age > _STALE_AGE_S or not _pid_alive(int(m.group(1)))
+        else:
+            stale = age > _LEGACY_STALE_AGE_S
+        if stale:
+            try:
+                os.unlink(entry.path)
+                removed.append(entry.path)
+            except OSError:
+                pass
+    return removed
+
+
+def _maybe_clean(folder: str) -> None:
+    import time
+
+    now = time.monotonic()
+    if now - _last_clean.get(folder, -math.inf) >= _CLEAN_INTERVAL_S:
+        _last_clean[folder] = now
+        clean_stale_temporaries(folder)
+
+
 def write_atomic(path: str | os.PathLike, data: bytes | str) -> None:
     """Write ``data`` (bytes, or text as UTF-8 with LF line ends) to ``path`` atomically.
 
-    The data goes to a temporary file in the same folder, then ``os.replace`` puts it in place: a crash
-    mid-write leaves the previous file intact. Parent folders are created.
+    The data goes to a hidden temporary file in the same folder, then ``os.replace`` puts it in place: a
+    crash mid-write leaves the previous file intact. Parent folders are created. Temporaries left by a
+    killed writer are removed here (:func:`clean_stale_temporaries`).
     """
     path = os.fspath(path)
     folder = os.path.dirname(os.path.abspath(path))
     os.makedirs(folder, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=folder, prefix=".tmp-", suffix=os.path.basename(path))
+    _maybe_clean(folder)
+    fd, tmp = tempfile.mkstemp(
+        dir=folder, prefix=f"{_TMP_PREFIX}{os.getpid()}-", suffix=os.path.basename(path)
+    )
     try:
         with os.fdopen(fd, "wb") as f:
             f.write(data.encode("utf-8") if isinstance(data, str) else data)
@@ -117,6 +192,23 @@ def _check_names(dof_names: Sequence[str], path) -> list[str]:
     return names
 
 
+def _check_values(arr: np.ndarray, names: list[str], path: str, first_row: int = 0) -> None:
+    if arr.ndim != 2 or arr.shape[1] != len(names):
+        raise ValueError(f"{path}: values must have shape (T, {len(names)}), got {arr.shape}")
+    bad = np.argwhere(~np.isfinite(arr))
+    if len(bad):
+        t, d = bad[0]
+        raise ValueError(
+            f"{path}: values[{t + first_row}, {d}] ({names[d]!r}) is {arr[t, d]}; must be finite"
+        )
+
+
+def _csv_lines(arr: np.ndarray) -> str:
+    # float.__repr__ is the shortest string that round-trips; tolist() gives Python floats (numpy scalars'
+    # repr would read "np.float64(...)").
+    return "".join(",".join(map(repr, row)) + "\n" for row in arr.tolist())
+
+
 def write_mocap_csv(
     path: str | os.PathLike,
     dof_names: Sequence[str],
@@ -133,16 +225,11 @@ def write_mocap_csv(
         times: optional (T,) finite, strictly increasing times (s), written as the first column ``time``.
 
     Every value is written with full float64 precision (``repr``), so :func:`read_mocap_csv` gives back the
-    same bits.
+    same bits. :class:`MocapCsvWriter` writes the same format row by row.
     """
     names = _check_names(dof_names, os.fspath(path))
     arr = _as_float64(values)
-    if arr.ndim != 2 or arr.shape[1] != len(names):
-        raise ValueError(f"{os.fspath(path)}: values must have shape (T, {len(names)}), got {arr.shape}")
-    bad = np.argwhere(~np.isfinite(arr))
-    if len(bad):
-        t, d = bad[0]
-        raise ValueError(f"{os.fspath(path)}: values[{t}, {d}] ({names[d]!r}) is {arr[t, d]}; must be finite")
+    _check_values(arr, names, os.fspath(path))
     header = names
     if times is not None:
         t_arr = _as_float64(times)
@@ -152,11 +239,77 @@ def write_mocap_csv(
             raise ValueError(f"{os.fspath(path)}: times must be finite and strictly increasing")
         arr = np.concatenate([t_arr[:, None], arr], axis=1)
         header = [TIME_COLUMN, *names]
-    # float.__repr__ is the shortest string that round-trips; tolist() gives Python floats (numpy scalars'
-    # repr would read "np.float64(...)").
-    lines = [",".join(header)]
-    lines.extend(",".join(map(repr, row)) for row in arr.tolist())
-    write_text_atomic(path, "\n".join(lines) + "\n")
+    write_text_atomic(path, ",".join(header) + "\n" + _csv_lines(arr))
+
+
+class MocapCsvWriter:
+    """Write a mocap CSV (the format of :func:`write_mocap_csv`) row by row, as results come.
+
+    Rows go to ``<path>.partial`` and are flushed as they are written, so a crash (or Ctrl-C) keeps every
+    finished row in a readable mocap CSV; :meth:`close` then moves the file to ``path`` in one
+    ``os.replace`` (atomic: ``path`` is either the previous file or the complete new one).
+
+    Args:
+        path: the final file; parent folders are created.
+        dof_names: (D,) column names (rules of :func:`write_mocap_csv`).
+        fps: when given, a ``time`` column ``t / fps`` (s) comes first.
+
+    Example::
+
+        with MocapCsvWriter("track.csv", skel.dof_names, fps=30) as out:
+            for theta in estimates:          # (D,) or (n, D) per call
+                out.write(theta)
+        # an exception inside the block leaves track.csv.partial with the rows written so far
+    """
+
+    def __init__(self, path: str | os.PathLike, dof_names: Sequence[str], fps: float | None = None):
+        self.path = os.fspath(path)
+        self.names = _check_names(dof_names, self.path)
+        if fps is not None and not (math.isfinite(fps) and fps > 0):
+            raise ValueError(f"{self.path}: fps must be positive and finite, got {fps}")
+        self.fps = fps
+        self.partial = self.path + ".partial"
+        self.rows = 0
+        os.makedirs(os.path.dirname(os.path.abspath(self.path)), exist_ok=True)
+        self._file = open(self.partial, "w", encoding="utf-8", newline="\n")  # noqa: SIM115 (closed in close)
+        header = ([TIME_COLUMN] if fps is not None else []) + self.names
+        self._file.write(",".join(header) + "\n")
+        self._file.flush()
+
+    def write(self, values) -> None:
+        """Append rows: ``values`` (D,) or (n, D) finite (rad / m)."""
+        arr = _as_float64(values)
+        arr = arr[None] if arr.ndim == 1 else arr
+        _check_values(arr, self.names, self.partial, first_row=self.rows)
+        if self.fps is not None:
+            t = (self.rows + np.arange(arr.shape[0], dtype=np.float64)) / self.fps
+            arr = np.concatenate([t[:, None], arr], axis=1)
+        self._file.write(_csv_lines(arr))
+        self._file.flush()
+        self.rows += arr.shape[0]
+
+    def close(self) -> None:
+        """Finish: ``<path>.partial`` becomes ``path`` (atomically)."""
+        if self._file.closed:
+            return
+        self._file.flush()
+        os.fsync(self._file.fileno())
+        self._file.close()
+        os.replace(self.partial, self.path)
+
+    def abort(self) -> None:
+        """Stop without finishing: the rows written so far stay in ``<path>.partial``."""
+        if not self._file.closed:
+            self._file.close()
+
+    def __enter__(self) -> MocapCsvWriter:
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
 
 
 def _column_label(index: int, name: str) -> str:

@@ -42,6 +42,8 @@ __all__ = [
     "Keypoints2D",
     "PointCloud",
     "Silhouettes",
+    "binary_mask",
+    "mask_full_scale",
 ]
 
 
@@ -89,6 +91,31 @@ def gaussian_blur(images: torch.Tensor, sigma: float) -> torch.Tensor:
     return flat.reshape(x.shape)
 
 
+def mask_full_scale(mask) -> float:
+    """The value that means "foreground" in a mask image: 1 for bool and 0/1 masks, 255 for 0/255 masks
+    (8-bit, also stored in 16 bits), 65535 for 0/65535 16-bit masks. Decided from the largest value, so
+    masks written by other tools (0/1 PNGs are common) read as they were meant; an all-zero mask is empty
+    whatever its scale."""
+    if isinstance(mask, torch.Tensor):
+        top = float(mask.max()) if mask.numel() else 0.0
+    else:
+        arr = np.asarray(mask)
+        top = float(arr.max()) if arr.size else 0.0
+    return 1.0 if top <= 1.0 + 1e-6 else 255.0 if top <= 255.0 else 65535.0
+
+
+def binary_mask(mask) -> np.ndarray:
+    """(H, W) bool foreground of a mask image: bool, 0/1, 0/255 or 16-bit, grey (H, W) or colour (H, W, C)
+    (any colour channel; a 4th channel, alpha, is ignored). Foreground is above half the full scale
+    (:func:`mask_full_scale`), so anti-aliased edges split at mid-grey."""
+    arr = np.asarray(mask)
+    if arr.ndim == 3:
+        arr = arr[..., :3].max(-1)
+    if arr.dtype == np.bool_:
+        return arr.copy()
+    return arr > mask_full_scale(arr) / 2
+
+
 @dataclass(eq=False)
 class PointCloud:
     """World points of one frame from a depth sensor.
@@ -109,9 +136,10 @@ class Silhouettes:
     """Foreground masks of one frame, one per camera.
 
     Fields:
-        masks: (V, H, W) foreground in [0, 1] (bool, 0/1 or 0/255 uint8 accepted; 255 is rescaled), or
-            (..., V, H, W) for a batch of independent sequences: the leading dims then match the particles'
-            (``(B, V, H, W)`` masks go with ``(B, N, D)`` particles), as a batched :class:`PointCloud`.
+        masks: (V, H, W) foreground in [0, 1] (bool, 0/1, 0/255 and 16-bit masks accepted and rescaled by
+            :func:`mask_full_scale`), or (..., V, H, W) for a batch of independent sequences: the leading
+            dims then match the particles' (``(B, V, H, W)`` masks go with ``(B, N, D)`` particles), as a
+            batched :class:`PointCloud`.
         valid: (V,) or (..., V) bool, False for a camera whose frame is missing (its terms are skipped).
 
     Derived (cached): :meth:`blurred` soft masks for smooth look-ups, :meth:`foreground_samples` fixed
@@ -120,13 +148,16 @@ class Silhouettes:
 
     masks: torch.Tensor
     valid: torch.Tensor | None = None
-    _cache: dict = field(default_factory=dict, repr=False)
+    # not an init field: a copy (dataclasses.replace, e.g. the tracker's per-frame device copy) starts with
+    # its own empty cache instead of filling the original's
+    _cache: dict = field(default_factory=dict, repr=False, init=False)
 
     def __post_init__(self):
         m = self.masks
+        scale = mask_full_scale(m)
         m = _to_tensor(m)
-        if m.numel() and float(m.max()) > 1.0 + 1e-6:  # 0/255 images
-            m = m / 255.0
+        if scale > 1.0:  # 0/255 or 16-bit images
+            m = m / scale
         if m.ndim == 2:
             m = m[None]
         if m.ndim < 3:
@@ -270,3 +301,22 @@ class Frame:
     keypoints: Keypoints2D | None = None
     skin: DistanceMaps | None = None
     edges: DistanceMaps | None = None
+
+    def has_evidence(self, fields=None) -> bool:
+        """Whether anything here can tell poses apart: a valid camera with a non-empty silhouette, a point,
+        a visible keypoint, or a valid distance map. ``fields``: only these fields count (the ones the
+        likelihood reads, e.g. ``{"silhouettes"}``); default all. A frame without evidence leaves every
+        particle's weight as it was (the tracker flags it: ``TrackResult.no_evidence``)."""
+
+        def wanted(name: str) -> bool:
+            return (fields is None or name in fields) and getattr(self, name) is not None
+
+        if wanted("silhouettes"):
+            s = self.silhouettes
+            if bool((s.valid & (s.masks > 0.5).flatten(1).any(-1)).any()):
+                return True
+        if wanted("points") and self.points.points.shape[-2] > 0:
+            return True
+        if wanted("keypoints") and bool(self.keypoints.visible.any()):
+            return True
+        return any(wanted(name) and bool(getattr(self, name).valid.any()) for name in ("skin", "edges"))

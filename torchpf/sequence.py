@@ -24,7 +24,13 @@ Example::
 from __future__ import annotations
 
 import io
+import math
+import operator
 import os
+import re
+import struct
+import tokenize
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -32,10 +38,13 @@ import torch
 
 from torchpf.camera import Camera, CameraRig, load_cameras, save_cameras
 from torchpf.io import read_mocap_csv, write_atomic, write_mocap_csv
-from torchpf.observations import Frame, Keypoints2D, PointCloud, Silhouettes
+from torchpf.observations import Frame, Keypoints2D, PointCloud, Silhouettes, binary_mask
 
 __all__ = [
+    "LazyFrames",
     "SequenceData",
+    "SequenceError",
+    "format_frames",
     "load_truth_csv",
     "read_sequence",
     "save_truth_csv",
@@ -62,12 +71,15 @@ def load_truth_csv(path) -> tuple[torch.Tensor, list[str], np.ndarray | None]:
 
 @dataclass(eq=False)
 class SequenceData:
-    """A multi-camera sequence in memory (synthetic or read from disk).
+    """A multi-camera sequence (synthetic in memory, or read from disk by :func:`read_sequence`).
 
     Fields:
         cameras: :class:`~torchpf.camera.CameraRig` of the mask cameras (``V``), in mask order.
-        masks: T lists of V uint8 (H, W) 0/255 arrays, None for a missing frame.
-        points: T arrays (K, 3) float32 world points, or None (no depth data).
+        masks: T rows of V (H, W) masks (uint8 0/255; 0/1, bool and 16-bit are read alike by
+            :func:`~torchpf.observations.binary_mask`), None for a missing mask. A list, or the
+            :class:`LazyFrames` of :func:`read_sequence` that reads a row when it is indexed.
+        points: T arrays (K, 3) float32 world points or None per frame (list or :class:`LazyFrames`), or
+            None (no depth data).
         depth_camera: the depth sensor (None without points).
         keypoints: (T, V, J, 2) float pixels in the mask grid, NaN = missing, or None;
             ``keypoint_joints`` their names.
@@ -75,8 +87,8 @@ class SequenceData:
     """
 
     cameras: CameraRig
-    masks: list = field(default_factory=list)
-    points: list | None = None
+    masks: Sequence = field(default_factory=list)
+    points: Sequence | None = None
     depth_camera: Camera | None = None
     keypoints: np.ndarray | None = None
     keypoint_joints: list[str] | None = None
@@ -90,19 +102,49 @@ class SequenceData:
                 return len(x)
         return 0
 
+    def has_observations(self, fields=None) -> bool:
+        """Whether any frame has a mask, a point file or a keypoint (without, there is nothing to track).
+        ``fields``: only these :class:`~torchpf.observations.Frame` fields count (``"silhouettes"``,
+        ``"points"``, ``"keypoints"``: the ones a likelihood reads); default all."""
+
+        def any_in(frames) -> bool:
+            if frames is None:
+                return False
+            if isinstance(frames, LazyFrames):
+                return frames.n_files > 0
+            return any(
+                x is not None for row in frames for x in (row if isinstance(row, list | tuple) else [row])
+            )
+
+        def wanted(name: str) -> bool:
+            return fields is None or name in fields
+
+        kp = self.keypoints is not None and bool(np.isfinite(np.asarray(self.keypoints)).any())
+        return (
+            (wanted("silhouettes") and any_in(self.masks))
+            or (wanted("points") and any_in(self.points))
+            or (wanted("keypoints") and kp)
+        )
+
     def frame(self, t: int) -> Frame:
-        """The observations of frame ``t`` as a :class:`~torchpf.observations.Frame`."""
+        """The observations of frame ``t`` as a :class:`~torchpf.observations.Frame` (read from disk for a
+        sequence read by :func:`read_sequence`)."""
         sil = None
-        if self.masks and t < len(self.masks):
+        if self.masks is not None and t < len(self.masks):
             row = self.masks[t]
-            shape = next((m.shape for m in row if m is not None), None)
+            present = [binary_mask(m) if m is not None else None for m in row]
+            shape = next((m.shape for m in present if m is not None), None)
             if shape is not None:
-                stack = np.stack([m if m is not None else np.zeros(shape, np.uint8) for m in row])
-                valid = torch.tensor([m is not None for m in row])
-                sil = Silhouettes(torch.from_numpy(stack > 127).float(), valid)
+                if any(m is not None and m.shape != shape for m in present):
+                    raise ValueError(f"frame {t}: the cameras' masks differ in size")
+                stack = np.stack([m if m is not None else np.zeros(shape, bool) for m in present])
+                valid = torch.tensor([m is not None for m in present])
+                sil = Silhouettes(torch.from_numpy(stack).float(), valid)
         pts = None
-        if self.points is not None and t < len(self.points) and self.points[t] is not None:
-            pts = PointCloud(torch.from_numpy(np.asarray(self.points[t], dtype=np.float32)))
+        if self.points is not None and t < len(self.points):
+            p = self.points[t]
+            if p is not None:
+                pts = PointCloud(torch.from_numpy(np.asarray(p, dtype=np.float32)))
         kp = None
         if self.keypoints is not None and t < len(self.keypoints):
             kp = Keypoints2D(torch.from_numpy(np.asarray(self.keypoints[t], dtype=np.float32)))
@@ -111,7 +153,9 @@ class SequenceData:
 
 # ---------------------------------------------------------------------- directory I/O
 def write_sequence(path, seq: SequenceData) -> None:
-    """Write ``seq`` as a sequence directory (module docstring); every file is written atomically."""
+    """Write ``seq`` as a sequence directory (module docstring); every file is written atomically. Masks are
+    stored 0/255 (:func:`write_mask`); camera names must be safe identifiers
+    (:func:`~torchpf.camera.check_camera_name`)."""
     root = os.fspath(path)
     cams = CameraRig(seq.cameras.cameras)
     depth_name = None
@@ -146,34 +190,271 @@ def write_sequence(path, seq: SequenceData) -> None:
 
 
 def write_mask(path, camera: str, t: int, mask) -> None:
-    """Write one silhouette (H, W) (bool, or uint8 where > 127 is foreground) as
-    ``masks/<camera>/<t:06d>.png`` (0/255) of the sequence directory ``path``, atomically: what
+    """Write one silhouette (H, W) (bool, 0/1, 0/255 or 16-bit: :func:`~torchpf.observations.binary_mask`)
+    as ``masks/<camera>/<t:06d>.png`` (0/255) of the sequence directory ``path``, atomically: what
     :func:`write_sequence` does per mask, for writers that stream frames (:mod:`torchpf.video`)."""
     import cv2
 
-    m = np.asarray(mask)
-    fg = m if m.dtype == np.bool_ else m > 127
-    ok, buf = cv2.imencode(".png", np.where(fg, 255, 0).astype(np.uint8))
+    ok, buf = cv2.imencode(".png", np.where(binary_mask(mask), 255, 0).astype(np.uint8))
     if not ok:
         raise OSError(f"cannot encode mask {camera}/{t:06d}.png")
     write_atomic(os.path.join(os.fspath(path), "masks", camera, f"{t:06d}.png"), buf.tobytes())
 
 
-def _frame_index(name: str, path: str) -> int:
+class SequenceError(ValueError):
+    """A sequence directory that cannot be read as one; the message starts with the file or folder at
+    fault."""
+
+
+class LazyFrames(Sequence):
+    """Per-frame data read from disk when asked for: ``frames[t]`` reads frame ``t`` and keeps nothing, a
+    slice reads a list, iteration reads one frame at a time. What :func:`read_sequence` puts in
+    ``SequenceData.masks`` and ``.points``, so that tracking holds one frame in memory, not the sequence.
+
+    ``n_files`` counts the files behind it (0: no observations of this kind)."""
+
+    def __init__(self, n: int, load, n_files: int):
+        self._n, self._load, self.n_files = int(n), load, int(n_files)
+
+    def __len__(self) -> int:
+        return self._n
+
+    def __getitem__(self, t):
+        if isinstance(t, slice):
+            return [self._load(i) for i in range(*t.indices(self._n))]
+        t = operator.index(t)
+        if t < 0:
+            t += self._n
+        if not 0 <= t < self._n:
+            raise IndexError(f"frame {t} out of range (0..{self._n - 1})")
+        return self._load(t)
+
+    def __repr__(self) -> str:
+        return f"LazyFrames({self._n} frames, {self.n_files} files)"
+
+
+_DIGITS = re.compile(r"[0-9]{1,12}")
+
+
+def _frame_index(name: str, folder: str) -> int:
     stem = os.path.splitext(name)[0]
-    if not stem.isdigit():
-        raise ValueError(f"{path}: unexpected file {name!r} (frames are named <frame:06d>)")
+    if not _DIGITS.fullmatch(stem):  # ASCII digits only: str.isdigit() also takes '²' and Arabic-Indic digits
+        raise SequenceError(f"{os.path.join(folder, name)}: unexpected file (frames are named <frame:06d>)")
     return int(stem)
 
 
-def read_sequence(path) -> SequenceData:
-    """Read a sequence directory (module docstring). The frame count is the largest frame index found in
-    ``masks/``, ``points/`` or ``truth.csv``; a missing mask or point file reads as None. A
-    ``video/<camera>.mp4`` without masks is not segmented here: use
-    :func:`torchpf.sensors.silhouettes_from_video`.
-    """
+def _index_folder(folder: str, ext: str) -> dict[int, str]:
+    """frame index -> path of the ``*.ext`` files in ``folder``."""
+    out: dict[int, str] = {}
+    for fn in sorted(os.listdir(folder)):
+        if fn.endswith(ext) and not fn.startswith("."):
+            i = _frame_index(fn, folder)
+            if i in out:
+                raise SequenceError(f"{os.path.join(folder, fn)}: frame {i} also in {out[i]}")
+            out[i] = os.path.join(folder, fn)
+    return out
+
+
+def _format_runs(runs: list[tuple[int, int]], limit: int = 6) -> str:
+    """'3, 5-9, 12' for inclusive runs (the first ``limit``, then how many more)."""
+    text = ", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in runs[:limit])
+    return text + (f" and {len(runs) - limit} more" if len(runs) > limit else "")
+
+
+def format_frames(frames: list[int], limit: int = 6) -> str:
+    """Sorted frame numbers as runs, '3, 5-9, 12 and 4 more' (messages and reports)."""
+    return _format_runs(_runs(frames), limit)
+
+
+def _runs(idx: list[int]) -> list[tuple[int, int]]:
+    """Sorted ints -> inclusive runs of consecutive values."""
+    runs: list[list[int]] = []
+    for i in idx:
+        if runs and i == runs[-1][1] + 1:
+            runs[-1][1] = i
+        else:
+            runs.append([i, i])
+    return [(a, b) for a, b in runs]
+
+
+def _frame_count(root: str, sources: dict[str, dict[int, str]], listed: tuple[int, str] | None) -> int:
+    """The number of frames. ``listed``: (count, file) from truth.csv or keypoints.npz, which list one row
+    per frame; every file must then be inside it. Otherwise the frames are the files 0..T-1 and must be
+    contiguous: a stray ``masks/cam0/99999999.png`` is an error, not a hundred million missing frames.
+    Checked on the indices alone, before anything is allocated per frame."""
+    if listed is not None:
+        T, what = listed
+        for folder, files in sources.items():
+            late = [i for i in files if i >= T]
+            if late:
+                raise SequenceError(
+                    f"{files[max(late)]}: frame {max(late)} is past the {T} frames that {what} lists "
+                    f"({len(late)} file(s) in {folder} are: frames {format_frames(sorted(late))})"
+                )
+        return T
+    present = sorted(set().union(*[files.keys() for files in sources.values()]))
+    if not present:
+        return 0
+    # the gaps between the present indices, never the (possibly huge) range of missing ones
+    gaps = [(a + 1, b - 1) for a, b in zip([-1, *present[:-1]], present, strict=True) if b > a + 1]
+    if gaps:
+        last = next(files[present[-1]] for files in sources.values() if present[-1] in files)
+        raise SequenceError(
+            f"{root}: frame numbers are not contiguous: no file for frame(s) {_format_runs(gaps)} (the last "
+            f"file is {last}); number the frames 0..T-1, or add truth.csv with one row per frame to list them"
+        )
+    return present[-1] + 1
+
+
+def _png_size(path: str) -> tuple[int, int]:
+    """(width, height) from a PNG header, without decoding the image."""
+    with open(path, "rb") as f:
+        head = f.read(24)
+    if len(head) < 24 or head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
+        raise SequenceError(f"{path}: not a PNG file")
+    w, h = struct.unpack(">II", head[16:24])
+    return w, h
+
+
+def _check_mask_sizes(files: dict[str, dict[int, str]], rig: CameraRig) -> tuple[int, int] | None:
+    """Every mask has one size (the V axis of Silhouettes), with its camera's aspect ratio: a mask smaller
+    than the camera image is scored with the camera rescaled to it (``CameraRig.resized``), but a mask
+    whose aspect differs (transposed, cropped) cannot be the camera's view and is refused, not rescaled."""
+    size, first = None, None
+    for name, frames in files.items():
+        W, H = rig[name].width, rig[name].height
+        for path in frames.values():
+            wh = _png_size(path)
+            if size is None:
+                size, first = wh, path
+            elif wh != size:
+                raise SequenceError(
+                    f"{path}: mask is {wh[0]}x{wh[1]} pixels but {first} is {size[0]}x{size[1]}; all masks "
+                    f"of a sequence have one size"
+                )
+            if W > 0 and H > 0 and abs(wh[0] * H - wh[1] * W) > max(W, H):
+                raise SequenceError(
+                    f"{path}: mask is {wh[0]}x{wh[1]} pixels, camera {name!r} images are {W}x{H}: the aspect "
+                    f"ratios differ (transposed or cropped mask?)"
+                )
+    return size
+
+
+def _read_mask(path: str, size: tuple[int, int]) -> np.ndarray:
+    """(H, W) uint8 0/255 from a mask PNG stored 0/1, 0/255, bool or 16-bit, grey or colour."""
     import cv2
 
+    m = cv2.imread(path, cv2.IMREAD_UNCHANGED)
+    if m is None:
+        raise SequenceError(f"{path}: cannot read as an image")
+    if m.shape[1::-1] != size:
+        raise SequenceError(f"{path}: decoded size {m.shape[1]}x{m.shape[0]} differs from its header")
+    return np.where(binary_mask(m), np.uint8(255), np.uint8(0))
+
+
+# What numpy's .npy header parser raises on a damaged header (it tokenizes the header's Python literal).
+_NPY_ERRORS = (ValueError, OSError, EOFError, SyntaxError, tokenize.TokenError)
+
+
+def _read_npy_header(f, path: str) -> tuple[tuple[int, ...], np.dtype]:
+    """Shape and dtype from the header of the ``.npy`` data open in ``f`` (left at the data)."""
+    fmt = np.lib.format
+    try:
+        version = fmt.read_magic(f)
+        if version == (1, 0):
+            shape, _, dtype = fmt.read_array_header_1_0(f)
+        elif version == (2, 0):
+            shape, _, dtype = fmt.read_array_header_2_0(f)
+        else:
+            raise SequenceError(f"{path}: unsupported .npy version {version}")
+    except SequenceError:
+        raise
+    except _NPY_ERRORS as e:
+        raise SequenceError(f"{path}: not a readable .npy header ({type(e).__name__}: {e})") from None
+    return shape, dtype
+
+
+def _npy_header(path: str) -> tuple[tuple[int, ...], np.dtype]:
+    """Shape and dtype of a ``.npy`` file, checked against the file's size before anything is read."""
+    with open(path, "rb") as f:
+        shape, dtype = _read_npy_header(f, path)
+        offset = f.tell()
+    if dtype.hasobject or dtype.kind not in "fiu":
+        raise SequenceError(f"{path}: expected numbers, the file holds {dtype}")
+    if math.prod(shape) * dtype.itemsize > os.path.getsize(path) - offset:
+        raise SequenceError(f"{path}: header says {shape} {dtype}, more data than the file holds")
+    return shape, dtype
+
+
+def _read_points(path: str) -> np.ndarray:
+    """(K, 3) float32 finite world points from ``points/<frame>.npy``."""
+    try:
+        shape, _ = _npy_header(path)
+        if len(shape) != 2 or shape[1] != 3:
+            raise SequenceError(f"{path}: expected a (K, 3) array, got shape {shape}")
+        arr = np.load(path, allow_pickle=False)
+    except SequenceError:
+        raise
+    except _NPY_ERRORS as e:
+        raise SequenceError(f"{path}: not a readable .npy file ({type(e).__name__}: {e})") from None
+    arr = arr.astype(np.float32)
+    if not np.isfinite(arr).all():
+        raise SequenceError(f"{path}: holds non-finite points")
+    return arr
+
+
+def _read_keypoints(path: str, names: list[str]) -> tuple[np.ndarray, list[str]]:
+    """uv (T, V, J, 2) float32 in the order of ``names`` (NaN = missing) and the joint names."""
+    import zipfile
+    import zlib
+
+    try:
+        with zipfile.ZipFile(path) as z:
+            members = {os.path.splitext(i.filename)[0]: i for i in z.infolist()}
+            if "uv" not in members:
+                raise SequenceError(f"{path}: no 'uv' array")
+            for key, info in members.items():
+                with z.open(info) as f:
+                    shape, dtype = _read_npy_header(f, f"{path}: entry {key!r}")
+                if math.prod(shape) * dtype.itemsize > info.file_size:
+                    raise SequenceError(f"{path}: entry {key!r} says {shape} {dtype}, more than it holds")
+        with np.load(path, allow_pickle=False) as z:
+            uv = np.asarray(z["uv"])
+            joints = [str(j) for j in z["joints"]] if "joints" in z.files else []
+            cams = [str(c) for c in z["cameras"]] if "cameras" in z.files else None
+    except SequenceError:
+        raise
+    except (zipfile.BadZipFile, zlib.error, KeyError, RuntimeError, *_NPY_ERRORS) as e:
+        raise SequenceError(f"{path}: not a readable keypoints .npz ({type(e).__name__}: {e})") from None
+    if uv.dtype.kind not in "fiu" or uv.ndim != 4 or uv.shape[-1] != 2:
+        raise SequenceError(
+            f"{path}: 'uv' must be a (T, V, J, 2) array of numbers, got {uv.shape} {uv.dtype}"
+        )
+    uv = uv.astype(np.float32)
+    if np.isinf(uv).any():
+        raise SequenceError(f"{path}: 'uv' holds infinite values (NaN marks a missing point)")
+    if len(joints) != uv.shape[2]:
+        raise SequenceError(f"{path}: {len(joints)} joint names for {uv.shape[2]} joints in 'uv'")
+    if cams is None:
+        cams = names
+    if len(cams) != uv.shape[1] or sorted(cams) != sorted(names):
+        raise SequenceError(f"{path}: keypoints of cameras {cams}, the masks' cameras are {names}")
+    return uv[:, [cams.index(n) for n in names]], joints
+
+
+def read_sequence(path) -> SequenceData:
+    """Read a sequence directory (module docstring), lazily: ``masks`` and ``points`` are
+    :class:`LazyFrames` that read a frame when it is asked for, so tracking holds one frame at a time.
+
+    Checked here, before any frame is read (errors are :class:`SequenceError`, a ValueError naming the file):
+    camera names and geometry (:func:`~torchpf.camera.load_cameras`); frame numbering: the frame count is
+    the number of rows of ``truth.csv`` (or of ``keypoints.npz``) when there is one, and every file must be
+    inside it, else the mask and point files must be numbered 0..T-1 without gaps; every mask has one size
+    and its camera's aspect ratio (read from the PNG headers). A missing mask or point file of a listed
+    frame reads as None. Masks read as uint8 0/255 whatever they were stored as (0/1, 0/255, bool, 16-bit).
+    A ``video/<camera>.mp4`` without masks is not segmented here: use
+    :func:`torchpf.sensors.silhouettes_from_video`.
+    """
     root = os.fspath(path)
     cam_file = os.path.join(root, "cameras.yaml")
     if not os.path.isfile(cam_file):
@@ -181,66 +462,52 @@ def read_sequence(path) -> SequenceData:
     rig = load_cameras(cam_file)
     depth = rig[rig.depth_camera] if rig.depth_camera else None
     mask_dir = os.path.join(root, "masks")
+    if os.path.isdir(mask_dir):
+        stray = sorted(n for n in os.listdir(mask_dir) if n not in rig and not n.startswith("."))
+        if stray:
+            raise SequenceError(f"{os.path.join(mask_dir, stray[0])}: no camera {stray[0]!r} in {cam_file}")
     names = [n for n in rig if os.path.isdir(os.path.join(mask_dir, n))]
     if not names:
         names = [n for n in rig if n != rig.depth_camera]
-    files: dict[str, dict[int, str]] = {}
-    T = 0
-    for n in names:
-        d = os.path.join(mask_dir, n)
-        files[n] = {}
-        if os.path.isdir(d):
-            for fn in os.listdir(d):
-                if fn.endswith(".png"):
-                    files[n][_frame_index(fn, d)] = os.path.join(d, fn)
-            T = max([T] + [i + 1 for i in files[n]])
-    pts_files: dict[int, str] = {}
+    files = {
+        n: _index_folder(os.path.join(mask_dir, n), ".png")
+        for n in names
+        if os.path.isdir(os.path.join(mask_dir, n))
+    }
     pdir = os.path.join(root, "points")
-    if os.path.isdir(pdir):
-        for fn in os.listdir(pdir):
-            if fn.endswith(".npy"):
-                pts_files[_frame_index(fn, pdir)] = os.path.join(pdir, fn)
-        T = max([T] + [i + 1 for i in pts_files])
+    pts_files = _index_folder(pdir, ".npy") if os.path.isdir(pdir) else {}
     truth = dof = times = None
     tpath = os.path.join(root, "truth.csv")
     if os.path.isfile(tpath):
         truth, dof, times = load_truth_csv(tpath)
-        T = max(T, truth.shape[0])
-    masks = []
-    for t in range(T):
-        row = []
-        for n in names:
-            f = files[n].get(t)
-            if f is None:
-                row.append(None)
-                continue
-            m = cv2.imread(f, cv2.IMREAD_GRAYSCALE)
-            if m is None:
-                raise OSError(f"{f}: cannot read as an image")
-            row.append(m)
-        masks.append(row)
-    points = None
-    if pts_files:
-        points = []
-        for t in range(T):
-            f = pts_files.get(t)
-            if f is None:
-                points.append(None)
-                continue
-            arr = np.load(f)
-            if arr.ndim != 2 or arr.shape[1] != 3:
-                raise ValueError(f"{f}: expected a (K, 3) array, got shape {arr.shape}")
-            points.append(arr.astype(np.float32))
     kps = kj = None
     kpath = os.path.join(root, "keypoints.npz")
     if os.path.isfile(kpath):
-        with np.load(kpath) as z:
-            kps, kj = z["uv"], [str(j) for j in z["joints"]]
-    mask_cams = CameraRig([rig[n] for n in names])
+        kps, kj = _read_keypoints(kpath, names)
+    listed = None
+    if truth is not None:
+        listed = (truth.shape[0], tpath)
+        if kps is not None and len(kps) != truth.shape[0]:
+            raise SequenceError(f"{kpath}: {len(kps)} frames, {tpath} has {truth.shape[0]}")
+    elif kps is not None:
+        listed = (len(kps), kpath)
+    sources = {os.path.join(mask_dir, n): f for n, f in files.items()}
+    if pts_files:
+        sources[pdir] = pts_files
+    T = _frame_count(root, sources, listed)
+    size = _check_mask_sizes(files, rig)
+
+    def mask_row(t: int) -> list:
+        return [None if n not in files or t not in files[n] else _read_mask(files[n][t], size) for n in names]
+
+    def point_frame(t: int):
+        return None if t not in pts_files else _read_points(pts_files[t])
+
+    n_masks = sum(len(f) for f in files.values())
     return SequenceData(
-        cameras=mask_cams,
-        masks=masks,
-        points=points,
+        cameras=CameraRig([rig[n] for n in names]),
+        masks=LazyFrames(T, mask_row, n_masks),
+        points=LazyFrames(T, point_frame, len(pts_files)) if pts_files else None,
         depth_camera=depth,
         keypoints=kps,
         keypoint_joints=kj,

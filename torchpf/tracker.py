@@ -47,10 +47,12 @@ import torch
 from torch import nn
 
 from torchpf.distributions import DYNAMICS, as_generator, make_dynamics
+from torchpf.filters.base import frame_summary
 from torchpf.filters.registry import FILTERS
-from torchpf.io import write_mocap_csv
+from torchpf.io import MocapCsvWriter, write_mocap_csv
 from torchpf.kinematics import body_partition
 from torchpf.likelihoods import LIKELIHOODS, TemperedLikelihood, calibrate_temperature, make_likelihood
+from torchpf.observations import Frame, Keypoints2D, PointCloud, Silhouettes
 
 
 def _diffusion_std(dynamics) -> Any:
@@ -80,6 +82,9 @@ class TrackResult:
         ess: (T,) effective sample size after weighting (Brubaker eq. 18).
         log_evidence: log p(z_{1:T}) estimate (see the filter's docstring for what the APF reports).
         failed: (T,) bool, frames where every weight was -inf/NaN (predicted particles kept).
+        no_evidence: (T,) bool, frames whose observations cannot tell poses apart (no camera with a usable
+            mask, no points, no keypoints: :meth:`~torchpf.observations.Frame.has_evidence`); their
+            estimate is the motion prior's prediction.
         stats: filter-specific per-frame statistics (HMC acceptance, APF betas, ...).
         seconds: wall-clock time of the filtering loop.
         likelihood_evaluations: per frame.
@@ -95,6 +100,7 @@ class TrackResult:
     stats: dict = field(default_factory=dict)
     seconds: float = 0.0
     likelihood_evaluations: int = 0
+    no_evidence: torch.Tensor | None = None
 
     def save_csv(self, path: str | os.PathLike) -> None:
         """Write the estimates as mocap CSV (DESIGN.md: ``time`` column then one column per DOF)."""
@@ -116,6 +122,67 @@ def _to_device(obs, device, dtype):
                 changes[f.name] = _to_device(v, device, dtype)
         return dataclasses.replace(obs, **changes) if changes else obs
     return obs
+
+
+def _evidence(obs, fields) -> bool:
+    """Whether one frame's observations can tell poses apart for a likelihood reading ``fields`` of a
+    :class:`Frame` (None: unknown, any field counts). Objects other than the containers: assumed."""
+    if isinstance(obs, Frame):
+        return obs.has_evidence(fields)
+    for name, kind in (("silhouettes", Silhouettes), ("points", PointCloud), ("keypoints", Keypoints2D)):
+        if isinstance(obs, kind):
+            return Frame(**{name: obs}).has_evidence()
+    return True
+
+
+def _observed_fields(likelihood) -> set[str] | None:
+    """The :class:`Frame` fields the likelihood's terms read (their ``obs_field``), None if one is unknown."""
+    fields = set()
+    for module in likelihood.modules():
+        if hasattr(module, "obs_field"):
+            if not module.obs_field:
+                return None
+            fields.add(module.obs_field)
+    return fields or None
+
+
+class _FrameBuffer:
+    """Per-frame tensors of a run, moved to the CPU and stacked every ``chunk`` frames: a long run keeps a few
+    (T, ...) arrays instead of T small tensors (each with its own allocation and object overhead)."""
+
+    def __init__(self, chunk: int = 256):
+        self.chunk, self.chunks, self.pending = chunk, {}, {}
+
+    def add(self, values: Mapping[str, torch.Tensor]) -> None:
+        for key, value in values.items():
+            self.pending.setdefault(key, []).append(torch.as_tensor(value).detach().cpu())
+        if len(next(iter(self.pending.values()), ())) >= self.chunk:
+            self._flush()
+
+    def _flush(self) -> None:
+        for key, values in self.pending.items():
+            self.chunks.setdefault(key, []).append(torch.stack(values))
+        self.pending = {}
+
+    def result(self) -> dict[str, torch.Tensor]:
+        self._flush()
+        return {key: torch.cat(chunks) for key, chunks in self.chunks.items()}
+
+
+class _Frames:
+    """``n`` items made on demand by ``make(t)``: indexable, re-iterable, with a length (progress bar)."""
+
+    def __init__(self, n: int, make):
+        self.n, self.make = n, make
+
+    def __len__(self) -> int:
+        return self.n
+
+    def __getitem__(self, t: int):
+        return self.make(t)
+
+    def __iter__(self):
+        return (self.make(t) for t in range(self.n))
 
 
 class Tracker(nn.Module):
@@ -360,27 +427,43 @@ class Tracker(nn.Module):
         generator: torch.Generator | None = None,
         seed: int | None = 0,
         fps: float | None = None,
+        out: str | os.PathLike | None = None,
     ) -> TrackResult:
-        """Track a sequence.
+        """Track a sequence, one frame at a time.
 
         Args:
             sequence: a sequence directory (path), a :class:`~torchpf.sequence.SequenceData`, or a list of
                 per-frame observations (:class:`~torchpf.observations.Frame` or whatever the likelihood
-                takes).
+                takes). A directory is read lazily (:func:`~torchpf.sequence.read_sequence`): each frame is
+                read, moved to the device, tracked and dropped, so memory does not grow with the length.
             init: (D,) initial pose; default the sequence's first ground-truth frame.
             generator: random generator; default one seeded with ``seed`` (0). A generator on another device
                 than the tracker's seeds a new one there (:func:`torchpf.distributions.as_generator`).
             fps: frame rate of the result (default: from the sequence's times, else 30).
+            out: optional mocap CSV written as the frames are tracked (:class:`~torchpf.io.MocapCsvWriter`):
+                ``<out>.partial`` holds every finished frame if the run stops, ``out`` appears complete at
+                the end.
 
         Returns:
-            :class:`TrackResult`.
+            :class:`TrackResult`; ``no_evidence`` flags the frames without usable observations.
+
+        Raises:
+            ValueError: no frames, no observations at all (no masks, points or keypoints), or no frame with
+                evidence (every mask empty or missing); no initial pose; a malformed frame (the error names
+                its file).
         """
         from torchpf.sequence import SequenceData, read_sequence
 
+        where = "the sequence"
         if isinstance(sequence, str | os.PathLike):
+            where = os.fspath(sequence)
             sequence = read_sequence(sequence)
         if isinstance(sequence, SequenceData):
-            frames = [sequence.frame(t) for t in range(len(sequence))]
+            observed = _observed_fields(self.likelihood)
+            if len(sequence) and not sequence.has_observations(observed):
+                what = "masks, points or keypoints" if observed is None else " or ".join(sorted(observed))
+                raise ValueError(f"{where}: no observations to track (no {what})")
+            frames = _Frames(len(sequence), sequence.frame)
             if init is None and sequence.truth is not None:
                 if sequence.dof_names is not None and list(sequence.dof_names) != list(
                     self.skeleton.dof_names
@@ -391,7 +474,7 @@ class Tracker(nn.Module):
                 fps = 1.0 / float(sequence.times[1] - sequence.times[0])
         else:
             frames = list(sequence)
-        if not frames:
+        if not len(frames):
             raise ValueError("the sequence has no frames")
         if init is None:
             raise ValueError("no initial pose: the sequence has no ground truth; pass init=(D,) pose")
@@ -400,27 +483,54 @@ class Tracker(nn.Module):
             raise ValueError(
                 f"init must be a ({len(self.skeleton.dof_names)},) pose, got {tuple(init.shape)}"
             )
+        fps = float(fps or self.fps or 30.0)
         # one generator on the particles' device drives the run (from the seed, or derived from `generator`)
         generator = as_generator(generator if generator is not None else int(seed or 0), self.device)
         x0 = self.initial_particles(init, generator)
-        observations = [_to_device(f, self.device, self.dtype) for f in frames]
+        evidence, observed = [], _observed_fields(self.likelihood)
+
+        def observe(t: int):  # one frame in memory at a time: read (lazily), moved, tracked, dropped
+            f = frames[t]
+            evidence.append(_evidence(f, observed))
+            return _to_device(f, self.device, self.dtype)
+
         t0 = time.perf_counter()
         if self.temperature == "auto":
-            self._calibrate_temperature(x0, observations[0], generator)
-        track = self.filter.run(observations, x0, generator=generator)  # no_grad inside, but for HMC moves
+            self._calibrate_temperature(x0, _to_device(frames[0], self.device, self.dtype), generator)
+        buffer = _FrameBuffer()
+        writer = MocapCsvWriter(out, self.skeleton.dof_names, fps=fps) if out is not None else None
+        state = None
+        try:
+            for state in self.filter.iterate(_Frames(len(frames), observe), x0, generator):
+                fields, stats = frame_summary(state)
+                buffer.add({**fields, **{f"stats/{k}": v for k, v in stats.items()}})
+                if writer is not None:
+                    writer.write(fields["estimates"].detach().to("cpu", torch.float64))
+            if not any(evidence):
+                raise ValueError(
+                    f"{where}: no frame has evidence (every mask is empty or missing, no points or keypoints)"
+                )
+        except BaseException:
+            if writer is not None:
+                writer.abort()
+            raise
+        if writer is not None:
+            writer.close()
         seconds = time.perf_counter() - t0
-        stats = dict(track.stats)
+        per_frame = buffer.result()
+        stats = {k[len("stats/") :]: v for k, v in per_frame.items() if k.startswith("stats/")}
         if isinstance(self.likelihood, TemperedLikelihood):
-            stats["temperature"] = self.likelihood.beta.clone()
+            stats["temperature"] = self.likelihood.beta.detach().cpu().clone()
         return TrackResult(
             dof_names=list(self.skeleton.dof_names),
-            fps=float(fps or self.fps or 30.0),
-            angles=track.estimates.detach().to(torch.float64).cpu(),
-            map_angles=track.map_estimates.detach().to(torch.float64).cpu(),
-            ess=track.ess.detach().cpu(),
-            log_evidence=float(track.log_evidence),
-            failed=track.failed.detach().cpu(),
-            stats={k: v.detach().cpu() if isinstance(v, torch.Tensor) else v for k, v in stats.items()},
+            fps=fps,
+            angles=per_frame["estimates"].to(torch.float64),
+            map_angles=per_frame["map_estimates"].to(torch.float64),
+            ess=per_frame["ess"],
+            log_evidence=float(state.log_evidence),
+            failed=per_frame["failed"],
+            stats=stats,
             seconds=seconds,
             likelihood_evaluations=self.likelihood_evaluations,
+            no_evidence=~torch.tensor(evidence, dtype=torch.bool),
         )

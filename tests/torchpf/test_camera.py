@@ -257,6 +257,16 @@ def _entry(K=_I, R=_I, t="[0,0,0]", width="4"):
         (_entry(R="[[2,0,0],[0,1,0],[0,0,1]]"), "'R'"),
         (_entry(t="[0,0]"), "'t'"),
         (_entry(width="-4"), "'width'"),
+        (_entry(width=".inf"), "'width'"),
+        (_entry(width="1e400"), "'width'"),
+        (_entry(width="100000000000000000000000"), "'width'"),
+        (_entry(width=".nan"), "'width'"),
+        (_entry(K="[[0,0,0],[0,0,0],[0,0,0]]"), "focal"),
+        (_entry(K="[[-500,0,2],[0,500,1],[0,0,1]]"), "focal"),
+        (_entry(K="[[500,0,2],[0,500,1],[0,0,2]]"), "'K'"),
+        (_entry(K="[[500,0,2],[0,500,1],[1,0,1]]"), "'K'"),
+        (_entry(K="[[500,0,2],[3,500,1],[0,0,1]]"), "'K'"),
+        (_entry(K="[[.nan,0,2],[0,500,1],[0,0,1]]"), "'K'"),
         ("cams: {}\n", "'cameras'"),
         ("cameras: {c0: {K: 1}}\ndepth_camera: nope\n", "'K'"),
     ],
@@ -267,6 +277,34 @@ def test_bad_camera_files_name_file_and_key(tmp_path, text, needle):
     with pytest.raises(CameraFileError) as e:
         load_cameras(path)
     assert str(path) in str(e.value) and needle in str(e.value)
+
+
+@pytest.mark.parametrize("name", ["../../outside", "/abs", "a/b", ".hidden", "..", "-x", "", "a b", "x" * 65])
+def test_camera_names_are_safe_identifiers(tmp_path, name):
+    path = tmp_path / "cameras.yaml"
+    path.write_text(_entry().replace("  c0:", f"  {name!r}:"))
+    with pytest.raises(CameraFileError) as e:
+        load_cameras(path)
+    assert str(path) in str(e.value) and repr(name) in str(e.value)
+    with pytest.raises(CameraFileError, match="safe identifier"):  # nor written anywhere
+        save_cameras(tmp_path / "out.yaml", [look_at((0, -3, 1), name=name)])
+    assert not (tmp_path / "out.yaml").exists()
+
+
+def test_opencv_file_errors_name_the_file(tmp_path):
+    path = tmp_path / "calib.yml"
+    path.write_text("%YAML:1.0\n---\ncamera_matrix: !!opencv-matrix\n   rows: 3\n   cols: [\n")
+    with pytest.raises(CameraFileError, match="calib.yml"):
+        load_cameras(path)
+    path.write_text(
+        "%YAML:1.0\n---\ncamera_matrix: !!opencv-matrix\n   rows: 100000\n   cols: 100000\n   dt: d\n"
+        "   data: [1.0]\nimage_width: 4\nimage_height: 3\n"
+    )
+    with pytest.raises(CameraFileError, match=r"calib\.yml: line 3: an opencv-matrix needs rows and cols"):
+        load_cameras(path)  # refused before allocating 10^10 numbers
+    path.write_bytes(b"cameras:\n  c0: \xff\xfe\n")
+    with pytest.raises(CameraFileError, match="calib.yml: not UTF-8"):
+        load_cameras(path)
 
 
 def test_bad_depth_camera_name(tmp_path):

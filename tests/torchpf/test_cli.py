@@ -131,6 +131,33 @@ def test_track_with_auto_temperature(seq_dir, tmp_path, capsys):
     assert values.shape[0] == 8 and torch.isfinite(torch.as_tensor(values)).all()
 
 
+def test_track_reports_frames_without_evidence(seq_dir, tmp_path, capsys):
+    import shutil
+
+    import cv2
+    import numpy as np
+
+    root = tmp_path / "seq"
+    shutil.copytree(seq_dir, root)
+    urdf = str(path("human.urdf"))
+    track = ["track", str(root), "--skeleton", urdf, "--filter", "sir", "--particles", "40", "--no-progress"]
+    assert main([*track, "--out", str(tmp_path)]) == 2  # refused before any work
+    assert "is a directory" in capsys.readouterr().err
+    for cam in ("cam0", "cam1"):
+        for t in (2, 3):
+            f = root / "masks" / cam / f"{t:06d}.png"
+            cv2.imwrite(str(f), np.zeros(cv2.imread(str(f)).shape[:2], np.uint8))
+    assert main([*track, "--out", str(tmp_path / "t.csv")]) == 0
+    printed = capsys.readouterr().out
+    assert "0 failed frames, 2 frames without evidence" in printed and "evidence" in printed.splitlines()[1]
+    assert "2-3" in printed.splitlines()[1]
+    for f in (root / "masks").rglob("*.png"):
+        cv2.imwrite(str(f), np.zeros(cv2.imread(str(f)).shape[:2], np.uint8))
+    assert main([*track, "--out", str(tmp_path / "u.csv")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "no frame has evidence" in err and err.count("\n") == 0 and not (tmp_path / "u.csv").exists()
+
+
 def test_module_entry_point_help():
     res = subprocess.run([sys.executable, "-m", "torchpf", "track", "--help"], capture_output=True, text=True)
     assert res.returncode == 0 and "--particles" in res.stdout

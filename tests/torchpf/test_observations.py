@@ -45,3 +45,30 @@ def test_blur_is_opencvs_gaussian_in_torch(sigma, device, dtype):
     assert out.device.type == device.type and out.dtype == dtype and out is obs.blurred(sigma)
     np.testing.assert_allclose(out.cpu().double().numpy(), expected, atol=1e-6)
     assert obs.foreground_samples(16)[0].device.type == device.type
+
+
+@pytest.mark.parametrize(
+    ("dtype", "on"),
+    [(np.bool_, True), (np.uint8, 1), (np.uint8, 255), (np.uint16, 1), (np.uint16, 255), (np.uint16, 65535)],
+)
+def test_masks_of_every_storage_read_alike(dtype, on):
+    from torchpf.observations import binary_mask
+
+    ref = np.zeros((6, 8), bool)
+    ref[2:5, 3:6] = True
+    stored = np.where(ref, on, 0).astype(dtype)
+    assert np.array_equal(binary_mask(stored), ref)
+    assert np.array_equal(binary_mask(np.repeat(stored[..., None], 3, -1)), ref)  # colour PNG
+    sil = Silhouettes(stored[None])
+    assert torch.equal(sil.masks[0], torch.from_numpy(ref).float())
+
+
+def test_frame_evidence():
+    from torchpf.observations import Frame
+
+    empty = Silhouettes(np.zeros((2, 4, 4), np.uint8))
+    assert not Frame(silhouettes=empty).has_evidence() and not Frame().has_evidence()
+    full = np.zeros((2, 4, 4), np.uint8)
+    full[1, 1, 1] = 255
+    assert Frame(silhouettes=Silhouettes(full)).has_evidence()
+    assert not Frame(silhouettes=Silhouettes(full, valid=[True, False])).has_evidence()

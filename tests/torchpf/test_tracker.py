@@ -240,3 +240,78 @@ def test_a_run_draws_only_from_its_own_generator(scene, name):
     torch.manual_seed(2)
     b = tracker.track(seq, generator=torch.Generator().manual_seed(4))
     assert torch.equal(a.angles, b.angles) and a.log_evidence == b.log_evidence
+
+
+# ---------------------------------------------------------------------- evidence and streaming (issue 16)
+def _sir(skel, cams, n=60):
+    return Tracker(
+        skel, cams, likelihood="silhouette", dynamics=walk(), filter="sir", n_particles=n, progress=False
+    )
+
+
+def test_frames_without_evidence_are_flagged(scene, tmp_path):
+    import os
+
+    import numpy as np
+
+    skel, cams, seq, angles = scene
+    root = tmp_path / "seq"
+    write_sequence(root, seq)
+    for c in cams:  # frame 3: every camera missing; frame 5: every mask empty
+        os.remove(root / "masks" / c / "000003.png")
+        (root / "masks" / c / "000005.png").write_bytes((root / "masks" / c / "000000.png").read_bytes())
+    import cv2
+
+    for c in cams:
+        cv2.imwrite(str(root / "masks" / c / "000005.png"), np.zeros((60, 80), np.uint8))
+    result = _sir(skel, cams).track(root, out=tmp_path / "track.csv")
+    assert result.no_evidence.tolist() == [t in (3, 5) for t in range(len(angles))]
+    assert not result.failed.any() and torch.isfinite(result.angles).all()
+    _, _, values = read_mocap_csv(tmp_path / "track.csv", expected_dof_names=skel.dof_names)
+    torch.testing.assert_close(torch.as_tensor(values), result.angles, rtol=0, atol=0)
+
+
+def test_sequences_without_observations_are_refused(scene, tmp_path):
+    import shutil
+
+    import cv2
+    import numpy as np
+
+    skel, cams, seq, _ = scene
+    root = tmp_path / "seq"
+    write_sequence(root, seq)
+    for c in cams:  # every mask empty: tracked, then refused (never "0 failed frames")
+        for f in (root / "masks" / c).iterdir():
+            cv2.imwrite(str(f), np.zeros((60, 80), np.uint8))
+    with pytest.raises(ValueError, match="no frame has evidence"):
+        _sir(skel, cams).track(root, out=tmp_path / "t.csv")
+    assert not (tmp_path / "t.csv").exists()
+    shutil.rmtree(root / "masks")
+    with pytest.raises(ValueError, match="no observations to track"):
+        _sir(skel, cams).track(root)
+
+
+def test_masks_stored_as_0_1_track_like_0_255(scene, tmp_path):
+    import cv2
+
+    skel, cams, seq, _ = scene
+    write_sequence(tmp_path / "a", seq)
+    write_sequence(tmp_path / "b", seq)
+    for f in (tmp_path / "b" / "masks").rglob("*.png"):
+        cv2.imwrite(str(f), (cv2.imread(str(f), cv2.IMREAD_GRAYSCALE) > 0).astype("uint8"))
+    a = _sir(skel, cams).track(tmp_path / "a")
+    b = _sir(skel, cams).track(tmp_path / "b")
+    assert torch.equal(a.angles, b.angles) and not b.no_evidence.any()
+
+
+def test_a_crash_keeps_the_frames_tracked_so_far(scene, tmp_path):
+    skel, cams, seq, _ = scene
+    frames = [seq.frame(t) for t in range(6)]
+    frames[4] = "not an observation"  # the likelihood fails on frame 4
+    with pytest.raises(Exception):  # noqa: B017 (whatever the likelihood raises)
+        _sir(skel, cams).track(frames, init=seq.truth[0], out=tmp_path / "t.csv")
+    assert not (tmp_path / "t.csv").exists()
+    _, _, values = read_mocap_csv(tmp_path / "t.csv.partial", expected_dof_names=skel.dof_names)
+    assert values.shape == (4, 96)
+    full = _sir(skel, cams).track(frames[:4], init=seq.truth[0])
+    torch.testing.assert_close(torch.as_tensor(values), full.angles, rtol=0, atol=0)

@@ -24,7 +24,7 @@ Example::
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Iterator, Mapping
 from typing import Any
 
 import torch
@@ -38,6 +38,23 @@ from torchpf.filters.weights import normalise, reweight
 from torchpf.resampling import RESAMPLERS
 
 _STANDARD_INFO = ("failed", "resampled", "log_evidence_increment", "ess", "estimate")
+
+
+def frame_summary(state: ParticleState) -> tuple[dict[str, Tensor], dict[str, Tensor]]:
+    """What a :class:`~torchpf.filters.state.Track` keeps of one frame: the per-frame values of its fields
+    (``estimates``, ``map_estimates``, ``ess``, ``log_evidence_increments``, ``failed``, ``resampled``, each
+    ``(..., *k)``) and the filter-specific statistics of ``state.info``."""
+    info = state.info
+    fields = {
+        # a filter whose estimate is not the weighted mean (a refined one) reports it in info
+        "estimates": info["estimate"] if "estimate" in info else state.mean(),
+        "map_estimates": state.map(),
+        "ess": info["ess"] if "ess" in info else state.ess(),
+        "log_evidence_increments": info["log_evidence_increment"],
+        "failed": info["failed"],
+        "resampled": info["resampled"],
+    }
+    return fields, {key: value for key, value in info.items() if key not in _STANDARD_INFO}
 
 
 class ParticleFilter(nn.Module):
@@ -216,27 +233,15 @@ class ParticleFilter(nn.Module):
         Returns:
             a :class:`~torchpf.filters.state.Track`.
         """
-        total = len(observations) if hasattr(observations, "__len__") else None
-        means, maps, ess, incs, failed, resampled = [], [], [], [], [], []
+        fields: dict[str, list[Tensor]] = {}
         stats: dict[str, list[Tensor]] = {}
-        generator = as_generator(generator, x0.device)
-        with torch.set_grad_enabled(grad):
-            state = self.init(x0, extras)
-            bar = tqdm(observations, total=total, desc=type(self).__name__, disable=not self.progress)
-            for obs in bar:
-                state = self.step(state, obs, generator)
-                info = state.info
-                # a filter whose estimate is not the weighted mean (a refined MAP) reports it in info
-                means.append(info["estimate"] if "estimate" in info else state.mean())
-                maps.append(state.map())
-                ess.append(info["ess"] if "ess" in info else state.ess())
-                incs.append(info["log_evidence_increment"])
-                failed.append(info["failed"])
-                resampled.append(info["resampled"])
-                for key, value in info.items():
-                    if key not in _STANDARD_INFO:
-                        stats.setdefault(key, []).append(value)
-        if not means:
+        state = None
+        for state in self.iterate(observations, x0, generator, extras=extras, grad=grad):
+            frame, frame_stats = frame_summary(state)
+            for out, values in ((fields, frame), (stats, frame_stats)):
+                for key, value in values.items():
+                    out.setdefault(key, []).append(value)
+        if state is None:
             raise ValueError("observations is empty")
         nb = state.particles.ndim - 2  # time goes right after the batch dims
 
@@ -244,16 +249,34 @@ class ParticleFilter(nn.Module):
             return torch.stack(values, dim=nb)
 
         return Track(
-            estimates=stack(means),
-            map_estimates=stack(maps),
-            ess=stack(ess),
+            **{key: stack(values) for key, values in fields.items()},
             log_evidence=state.log_evidence,
-            log_evidence_increments=stack(incs),
-            failed=stack(failed),
-            resampled=stack(resampled),
             stats={key: stack(values) for key, values in stats.items()},
             final_state=state,
         )
+
+    def iterate(
+        self,
+        observations: Iterable[Any],
+        x0: Tensor,
+        generator: torch.Generator | int | None = None,
+        *,
+        extras: Mapping[str, Tensor] | None = None,
+        grad: bool = False,
+    ) -> Iterator[ParticleState]:
+        """:meth:`run` one frame at a time: ``init(x0)``, then yields the state after each :meth:`step`
+        (under ``no_grad`` unless ``grad``) and keeps nothing, so a consumer that writes each frame out runs
+        in memory that does not grow with the sequence (``observations`` may be a lazy iterable). Arguments
+        as :meth:`run`.
+        """
+        total = len(observations) if hasattr(observations, "__len__") else None
+        generator = as_generator(generator, x0.device)
+        with torch.set_grad_enabled(grad):
+            state = self.init(x0, extras)
+        for obs in tqdm(observations, total=total, desc=type(self).__name__, disable=not self.progress):
+            with torch.set_grad_enabled(grad):
+                state = self.step(state, obs, generator)
+            yield state
 
     # ------------------------------------------------------------------ building blocks for subclasses
 

@@ -269,6 +269,18 @@ def test_plain_extras_are_resampled_with_particles():
     assert state.ess().max() < 50  # it did resample and concentrate
 
 
+@pytest.mark.parametrize("kind", ["sir", "apf", "mcmc"])
+def test_iterate_yields_what_run_keeps(kind):
+    pf = make_filter(kind)
+    obs = observations()
+    track = pf.run(obs, _x0(), torch.Generator().manual_seed(3))
+    states = list(pf.iterate(iter(obs), _x0(), torch.Generator().manual_seed(3)))  # a lazy iterable
+    assert len(states) == 6
+    est = torch.stack([s.mean() for s in states], 1)
+    assert torch.equal(est, track.estimates)
+    assert torch.equal(states[-1].log_evidence, track.log_evidence)
+
+
 # --------------------------------------------------------------------------- randomness, dtype, device
 
 
