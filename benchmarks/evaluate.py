@@ -887,13 +887,10 @@ FOREIGN_SETUPS: dict[str, Callable[..., Any]] = {
         filter="hybrid", filter_options={"refine_mode": "particles", "refine_prior": False}
     ),
     "hybrid_estimate": tracker_setup(filter="hybrid", filter_options={"refine_mode": "estimate"}),
+    "calibrated_hybrid_estimate": calibrated_setup(
+        filter="hybrid", filter_options={"refine_mode": "estimate"}
+    ),
     "calibrated_hybrid": calibrated_setup(filter="hybrid"),
-    "calibrated_hybrid_recentre": calibrated_setup(
-        filter="hybrid", filter_options={"refine_mode": "recentre"}
-    ),
-    "calibrated_hybrid_tau8": calibrated_setup(
-        filter="hybrid", filter_options={"refine_options": {"cue_options": {"tau": 8.0}}}
-    ),
     "calibrated_hybrid_particles": calibrated_setup(
         filter="hybrid", filter_options={"refine_mode": "particles", "refine_prior": True}
     ),

@@ -51,7 +51,11 @@ def _parser() -> argparse.ArgumentParser:
         help="registered motion prior (default random_walk, or action with --action), or a FILE.npz of "
         "'python -m training fit-dynamics' (the 'learned' prior)",
     )
-    tr.add_argument("--filter", help="sir, qrs, partitioned, partitioned_qrs, apf, mcmc (default apf)")
+    tr.add_argument(
+        "--filter",
+        help="sir, qrs, partitioned, partitioned_qrs, apf, mcmc, hybrid (APF + gradient refinement; best with a "
+        "calibrated body) (default apf)",
+    )
     tr.add_argument("--particles", type=int, help="likelihood evaluations per frame (default 500)")
     tr.add_argument(
         "--likelihood",

@@ -3,35 +3,33 @@ best hypotheses, Gall, Rosenhahn, Brox & Seidel (IJCV 2010), "Optimization and f
 capture - a multi-layer framework" (global stochastic optimisation, then local optimisation).
 
 Each frame runs the ``L`` APF layers (:class:`~torchpf.filters.AnnealedParticleFilter`, Brubaker Alg. 2),
-then takes the ``K`` particles of highest weight and refines them by projected Adam on a differentiable cue
-(:class:`~torchpf.refine.Refiner`; default the two-sided distance-transform silhouette cue). How the refined
-poses re-enter (``refine_mode``):
+then refines ``K`` poses by projected Adam on a differentiable cue (:class:`~torchpf.refine.Refiner`; default
+the two-sided distance-transform silhouette cue). How the refined poses re-enter (``refine_mode``):
 
-* ``"estimate"`` (default): the particle set is left as the APF made it; the weighted mean and the
-  ``K - 1`` particles of highest weight are refined and the frame's estimate is the one the refinement left
-  best on its objective (``info["estimate"]``): a post-processing of the APF's output that the filter never
-  sees, so it cannot hurt the search, but the next frame starts from the unrefined particles.
-* ``"particles"``: each refined pose ``x' = T(x)`` replaces its particle, and its weight is moved by the
-  ratio of the filtering target ``pi(x) = p(z_t | x) p(x | x_{t-1})`` at the two points::
+* ``"recentre"`` (default): the weighted mean and the ``K - 1`` particles of highest weight are refined;
+  the frame's estimate is the candidate the refinement left best on its objective (``info["estimate"]``),
+  and every particle is shifted by that estimate minus the weighted mean (clamped to the limits), weights
+  unchanged: the set keeps its spread and follows the refinement into the next frame. A deterministic
+  move of the whole set, not an importance-weighted one (the weights do not see it): the "filtering
+  around the optimum" of Gall et al.'s layered framework, where the stochastic search explores and the
+  local optimisation corrects its drift.
+* ``"estimate"``: the same estimate, but the particle set is left as the APF made it: a post-processing the
+  filter never sees, so the next frame starts from the unrefined particles and the drift stays.
+* ``"particles"``: the ``K`` particles of highest weight are refined, each ``x' = T(x)`` replaces its
+  particle, and its weight is moved by the ratio of the filtering target
+  ``pi(x) = p(z_t | x) p(x | x_{t-1})`` at the two points::
 
       log w' = log w + log p(z_t | x') - log p(z_t | x) + log p(x' | x_{t-1}) - log p(x | x_{t-1})
 
   the importance weight of a deterministic move that ignores the Jacobian ``|det dT/dx|`` of the
-  optimiser's map (unknown; a contraction towards a mode has ``|det| < 1``, so the weight is an
-  approximation that favours refined poses). With ``refine_prior=True`` the refiner climbs the same target
-  (cue times motion prior), so the ratio is positive and the refined particles carry the next frame's
-  search; with ``refine_prior=False`` it climbs the cue alone and the prior term of the ratio usually
-  rejects the move (the refiner moves DOFs that the silhouettes leave free).
+  optimiser's map (unknown). With ``refine_prior=True`` the refiner climbs the same target (cue times
+  motion prior), the ratio is positive and the refined particles take all the weight (the set collapses
+  onto ``K`` poses); with ``refine_prior=False`` it climbs the cue alone and the prior term of the ratio
+  rejects the move (the refiner moves DOFs that the silhouettes leave free), so the refinement is lost.
 
-* ``"recentre"``: as ``"estimate"``, then every particle is shifted by the estimate minus the weighted
-  mean (clamped to the limits), weights unchanged: the set keeps its spread and follows the refinement into
-  the next frame. A deterministic move of the whole set, not an importance-weighted one (the weights do not
-  see it); it is the "filtering around the optimum" of Gall et al.'s layered framework.
-
-Measured (BENCHMARKS.md, "Hybrid search"): on a synthetic walk at 600 evaluations per frame the APF's
-162 mm became 101 mm with ``"estimate"``, 272 mm with ``"particles"`` (the refined particles took all the
-weight and the set collapsed onto ``K`` poses) and 194 mm with ``"particles"`` without the prior (the
-refined particles took none). Hence the default.
+Measured on foreign renders (BENCHMARKS.md, "Hybrid search (issue 12)"; CMU 07_01, calibrated body, 500
+evaluations per frame, clean masks): APF 138 mm; hybrid ``"particles"`` 181 mm, ``"estimate"`` 93 mm,
+``"recentre"`` 35 mm. Hence the default.
 
 Equal budget (:mod:`torchpf.filters.registry`): per frame ``L N`` likelihood evaluations for the layers plus
 :meth:`~torchpf.refine.Refiner.evaluations` for the ``K`` refinements (``steps`` gradient steps at
@@ -88,7 +86,7 @@ class HybridParticleFilter(AnnealedParticleFilter):
         *,
         refiner: Any = None,
         n_refine: int = 4,
-        refine_mode: str = "estimate",
+        refine_mode: str = "recentre",
         refine_prior: bool = False,
         **options: Any,
     ):
@@ -114,7 +112,7 @@ class HybridParticleFilter(AnnealedParticleFilter):
         k = int(options.get("n_refine", 4))
         if refiner is None:
             return 0
-        extra = 2 * k if options.get("refine_mode", "estimate") == "particles" else 0
+        extra = 2 * k if options.get("refine_mode", "recentre") == "particles" else 0
         return refiner.evaluations(k) + extra
 
     @classmethod

@@ -107,7 +107,9 @@ def test_refined_particles_get_the_target_ratio(setup):
 
 def test_estimate_mode_reports_the_best_refined_candidate_and_keeps_the_particles(setup):
     model, zs, x0 = setup
-    apf, hybrid = _filters(model, ShiftRefiner(0.5))  # its objective: |x|^2, lower is better
+    apf, hybrid = _filters(
+        model, ShiftRefiner(0.5), refine_mode="estimate"
+    )  # its objective: |x|^2, lower is better
     sa, sh = apf.init(x0), hybrid.init(x0)
     ga, gh = torch.Generator().manual_seed(2), torch.Generator().manual_seed(2)
     for z in zs:

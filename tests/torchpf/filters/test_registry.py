@@ -18,7 +18,7 @@ def _lik(x, obs):
 
 
 def test_names_and_alias():
-    assert FILTERS.names() == ["apf", "mcmc", "partitioned", "partitioned_qrs", "qrs", "sir"]
+    assert FILTERS.names() == ["apf", "hybrid", "mcmc", "partitioned", "partitioned_qrs", "qrs", "sir"]
     assert FILTERS.get("CONDENSATION") is FILTERS.get("sir")
     with pytest.raises(ValueError, match="unknown filter 'kalman'"):
         FILTERS.get("kalman")
