@@ -53,8 +53,8 @@ def _parser() -> argparse.ArgumentParser:
     )
     tr.add_argument(
         "--filter",
-        help="sir, qrs, partitioned, partitioned_qrs, apf, mcmc, hybrid (APF + gradient refinement; best with a "
-        "calibrated body) (default apf)",
+        help="sir, qrs, partitioned, partitioned_qrs, apf, mcmc, hybrid (APF + gradient refinement; best "
+        "with a calibrated body) (default apf)",
     )
     tr.add_argument("--particles", type=int, help="likelihood evaluations per frame (default 500)")
     tr.add_argument(
