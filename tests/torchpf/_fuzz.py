@@ -146,7 +146,10 @@ def _scratch() -> str:
     import tempfile
 
     if not _SCRATCH:
+        import atexit
+
         _SCRATCH.append(tempfile.mkdtemp(prefix="torchpf-fuzz-"))
+        atexit.register(shutil.rmtree, _SCRATCH[0], True)
     return _SCRATCH[0]
 
 
