@@ -184,6 +184,24 @@ class Silhouettes:
             self._cache[key] = gaussian_blur(self.masks, sigma) if sigma > 0 else self.masks
         return self._cache[key]
 
+    def despeckled(self, size: int) -> Silhouettes:
+        """These masks with isolated speckles and pinholes removed: a ``size x size`` median filter
+        (``cv2.medianBlur``) of the binary masks, cached; ``size <= 1`` returns ``self``. Limbs wider than
+        ``size / 2`` pixels keep their shape; salt-and-pepper noise from a background subtraction goes."""
+        if size <= 1:
+            return self
+        key = ("despeckled", int(size), self.masks.device)
+        if key not in self._cache:
+            import cv2
+
+            k = int(size) | 1  # odd
+            hard = ((self.masks > 0.5).reshape(-1, *self.masks.shape[-2:]).cpu().numpy() * 255).astype(
+                np.uint8
+            )
+            out = torch.from_numpy(np.stack([cv2.medianBlur(m, k) for m in hard]) > 127)
+            self._cache[key] = Silhouettes(out.reshape(self.masks.shape).to(self.masks), valid=self.valid)
+        return self._cache[key]
+
     def area(self) -> torch.Tensor:
         """(..., V) foreground area in pixels (sum of the mask)."""
         if ("area", self.masks.device) not in self._cache:

@@ -153,3 +153,18 @@ def test_a_prior_holds_the_pose_and_a_nan_pose_is_kept(human, scene):
     assert torch.isnan(out.x[0, 7])  # returned as given, never "refined" into something else
     assert torch.isfinite(out.x[1]).all()
     assert refiner.evaluations(4) == math.ceil(4 * (3 * Refiner.cost_per_step + 1))
+
+
+def test_despeckle_removes_salt_and_keeps_limbs():
+    mask = np.zeros((40, 60), np.uint8)
+    mask[10:30, 20:25] = 255  # a 5-px limb
+    noisy = mask.copy()
+    rng = np.random.default_rng(0)
+    ys, xs = rng.integers(0, 40, 30), rng.integers(0, 60, 30)
+    noisy[ys, xs] = 255 - noisy[ys, xs]  # 30 flipped pixels, salt and pepper
+    clean = Silhouettes(noisy).despeckled(3)
+    kept = clean.masks[0].numpy() > 0.5
+    assert (kept & (mask == 0)).sum() == 0  # no isolated salt pixel survives
+    assert (kept[12:28, 21:24]).all()  # the limb's interior is intact
+    obs = Silhouettes(noisy)
+    assert obs.despeckled(3) is obs.despeckled(3) and obs.despeckled(1) is obs

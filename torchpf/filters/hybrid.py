@@ -7,12 +7,13 @@ then refines ``K`` poses by projected Adam on a differentiable cue (:class:`~tor
 the two-sided distance-transform silhouette cue). How the refined poses re-enter (``refine_mode``):
 
 * ``"recentre"`` (default): the weighted mean and the ``K - 1`` particles of highest weight are refined;
-  the frame's estimate is the candidate the refinement left best on its objective (``info["estimate"]``),
-  and every particle is shifted by that estimate minus the weighted mean (clamped to the limits), weights
-  unchanged: the set keeps its spread and follows the refinement into the next frame. A deterministic
-  move of the whole set, not an importance-weighted one (the weights do not see it): the "filtering
-  around the optimum" of Gall et al.'s layered framework, where the stochastic search explores and the
-  local optimisation corrects its drift.
+  the frame's estimate is the candidate the refinement left best on its objective (``info["estimate"]``)
+  if the filter's likelihood scores it at least as high as the mean (else the mean;
+  ``info["refine_accepted"]``), and every particle is shifted by that estimate minus the weighted mean
+  (clamped to the limits), weights unchanged: the set keeps its spread and follows the refinement into the
+  next frame. A deterministic move of the whole set, not an importance-weighted one (the weights do not see
+  it): the "filtering around the optimum" of Gall et al.'s layered framework, where the stochastic search
+  explores and the local optimisation corrects its drift.
 * ``"estimate"``: the same estimate, but the particle set is left as the APF made it: a post-processing the
   filter never sees, so the next frame starts from the unrefined particles and the drift stays.
 * ``"particles"``: the ``K`` particles of highest weight are refined, each ``x' = T(x)`` replaces its
@@ -107,12 +108,13 @@ class HybridParticleFilter(AnnealedParticleFilter):
     def refine_evaluations(cls, **options: Any) -> int:
         """Likelihood-evaluation equivalents of one frame's refinement with constructor keywords
         ``options``: the refiner's cost for ``n_refine`` poses, plus ``2 n_refine`` for the weight ratio in
-        ``"particles"`` mode."""
+        ``"particles"`` mode or 2 for the likelihood check of the estimate in the other modes."""
         refiner = options.get("refiner")
         k = int(options.get("n_refine", 4))
         if refiner is None:
             return 0
-        extra = 2 * k if options.get("refine_mode", "recentre") == "particles" else 0
+        # the weight ratio (2 K), or the check of the refined estimate against the mean (2)
+        extra = 2 * k if options.get("refine_mode", "recentre") == "particles" else 2
         return refiner.evaluations(k) + extra
 
     @classmethod
@@ -174,7 +176,14 @@ class HybridParticleFilter(AnnealedParticleFilter):
         info["refine_gain"] = (refined.loss_before - refined.loss).mean(-1)
         if estimate:  # the candidate the refinement left best (the mean where every objective is NaN)
             best = torch.nan_to_num(refined.loss, nan=torch.inf).argmin(-1, keepdim=True)
-            info["estimate"] = gather_particles(refined.x, best).squeeze(-2)
+            chosen = gather_particles(refined.x, best)
+            # The filter's own likelihood arbitrates: the refiner's cue is a surrogate that a mask defect can
+            # mislead (a stray blob, a limb missing from one camera), so a refined estimate the likelihood
+            # scores below the plain mean is not taken.
+            both = self._loglik(self.likelihood, torch.cat([xk[..., :1, :], chosen], -2), obs)
+            accept = both[..., 1] >= both[..., 0]
+            info["refine_accepted"] = accept
+            info["estimate"] = torch.where(accept.unsqueeze(-1), chosen.squeeze(-2), xk[..., 0, :])
             if self.refine_mode == "recentre":  # the whole set follows its refined estimate
                 shift = info["estimate"] - xk[..., 0, :]
                 shift = torch.where(torch.isfinite(shift), shift, 0.0).unsqueeze(-2)

@@ -68,7 +68,7 @@ def test_budget_counts_layers_and_refinement():
     )
     assert built.likelihood_evaluations == 3 * n + refine <= 500
     est = kind.for_budget(500, refiner=refiner, n_refine=4)  # "estimate" mode: no weight ratio
-    assert est == (500 - 4 * 31) // 3
+    assert est == (500 - 4 * 31 - 2) // 3  # the refiner plus the likelihood check of the estimate
 
 
 def test_a_refiner_that_does_nothing_gives_the_apf(setup):
@@ -112,6 +112,7 @@ def test_estimate_mode_reports_the_best_refined_candidate_and_keeps_the_particle
     )  # its objective: |x|^2, lower is better
     sa, sh = apf.init(x0), hybrid.init(x0)
     ga, gh = torch.Generator().manual_seed(2), torch.Generator().manual_seed(2)
+    seen = set()
     for z in zs:
         sa, sh = apf.step(sa, z, ga), hybrid.step(sh, z, gh)
         torch.testing.assert_close(sh.particles, sa.particles)
@@ -123,8 +124,15 @@ def test_estimate_mode_reports_the_best_refined_candidate_and_keeps_the_particle
             [sa.mean().unsqueeze(-2), sa.particles.gather(-2, top.unsqueeze(-1).expand(-1, -1, 4))], -2
         )
         best = cands.square().sum(-1).argmin(-1)
-        want = cands[torch.arange(2), best] + 0.5
+        chosen = cands[torch.arange(2), best] + 0.5
+        # taken only where the filter's own likelihood scores it at least as high as the mean
+        lik = model.likelihood()
+        accept = lik(chosen.unsqueeze(-2), z)[:, 0] >= lik(cands[:, :1], z)[:, 0]
+        want = torch.where(accept.unsqueeze(-1), chosen, cands[:, 0])
         torch.testing.assert_close(sh.info["estimate"], want)
+        assert torch.equal(sh.info["refine_accepted"], accept)
+        seen.update(accept.tolist())
+    assert seen == {True, False}  # both branches ran
 
 
 def test_recentre_mode_shifts_the_set_to_the_refined_estimate(setup):
