@@ -24,6 +24,7 @@ Example::
 from __future__ import annotations
 
 import os
+import re
 import tempfile
 from collections.abc import Sequence
 
@@ -35,6 +36,35 @@ TIME_COLUMN = "time"
 # Characters a column name may not contain: the writer does no quoting, so that any CSV reader (and a
 # person with a text editor) sees exactly one name per comma-separated field.
 _FORBIDDEN_IN_NAMES = (",", '"', "\n", "\r")
+
+
+# A number as the file formats write it: ASCII digits, optional sign, point and exponent (or inf / nan, which
+# the callers refuse with their own "must be finite"). Python's float() also takes "1_000", Arabic-Indic
+# digits and Unicode spaces: a file holding those was not written by a number formatter.
+_PLAIN_NUMBER = re.compile(
+    r"[+-]?(?:(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?|inf|infinity|nan)", re.IGNORECASE
+)
+
+
+def plain_float(text: str) -> float:
+    """``float(text)`` for a plain ASCII decimal number (surrounding ASCII blanks allowed).
+
+    Raises ValueError for anything else that :func:`float` would accept: digit group underscores
+    (``1_000``), non-ASCII digits (Arabic-Indic ``١٢``), Unicode spaces. ``inf``/``nan`` pass (callers check
+    finiteness with their own message).
+    """
+    stripped = text.strip(" \t\r\n")
+    if not _PLAIN_NUMBER.fullmatch(stripped):
+        raise ValueError(f"not a plain decimal number: {text!r}")
+    return float(stripped)
+
+
+def plain_int(text: str) -> int:
+    """``int(text)`` for plain ASCII digits with an optional sign (no ``1_000``, no non-ASCII digits)."""
+    stripped = text.strip(" \t\r\n")
+    if not re.fullmatch(r"[+-]?[0-9]+", stripped):
+        raise ValueError(f"not a plain integer: {text!r}")
+    return int(stripped)
 
 
 class MocapFormatError(ValueError):

@@ -34,6 +34,7 @@ Example::
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Mapping, Sequence
 
@@ -157,6 +158,9 @@ class Skeleton(nn.Module):
         super().__init__()
         self.chain = chain
         self.source = source
+        bad = {k: v for k, v in (radii or {}).items() if not (math.isfinite(float(v)) and float(v) > 0)}
+        if bad:
+            raise ValueError(f"{source}: capsule radii must be finite and > 0, got {bad}")
         self.urdf_xml = urdf_xml  # what with_body / save_urdf rewrite
         geometry = link_geometry(parse_urdf_xml(urdf_xml, source))
         frames = flatten_chain(chain)
