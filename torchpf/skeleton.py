@@ -419,7 +419,7 @@ class Skeleton(nn.Module):
         loc = torch.cat(local, 0) if len(local) > 1 else local[0]
         if c["reorder"] is not None:
             loc = loc.index_select(0, c["reorder"])
-        loc = loc.view(-1, 3, 4, B)
+        loc = loc.view(loc.shape[0], 3, 4, B)  # explicit sizes: B may be 0 (an empty batch)
         world = []
         col3 = c["col3"]
         for start, end, parent_rows in c["levels"]:
@@ -441,7 +441,7 @@ class Skeleton(nn.Module):
         for g, v in run_axes:
             P = ext.index_select(0, c[f"par{g}"])  # (n, 3, 4, B)
             n, m = v.shape[0], len(self._groups[g])
-            v = v.view(n, -1, 3, B)  # (n, m or 2m, 3, B)
+            v = v.view(n, v.shape[1] // 3, 3, B)  # (n, m or 2m, 3, B)
             w = P[:, None, :, 0] * v[:, :, 0:1]
             w = torch.addcmul(w, P[:, None, :, 1], v[:, :, 1:2])
             w = torch.addcmul(w, P[:, None, :, 2], v[:, :, 2:3])
