@@ -32,7 +32,6 @@ import numpy as np
 
 #: Name of the optional first column (seconds).
 TIME_COLUMN = "time"
-
 # Characters a column name may not contain: the writer does no quoting, so that any CSV reader (and a
 # person with a text editor) sees exactly one name per comma-separated field.
 _FORBIDDEN_IN_NAMES = (",", '"', "\n", "\r")
@@ -211,7 +210,8 @@ def read_mocap_csv(
     Raises:
         MocapFormatError: empty file, empty/duplicate/misplaced column names, columns that differ from
             ``expected_dof_names`` (unknown or missing), a row with the wrong number of fields, a field that
-            is not a number or is NaN/inf, times not strictly increasing. The message names file, line and
+            is not a plain decimal number (:func:`plain_float`) or is NaN/inf, times not strictly
+            increasing. The message names file, line and
             column.
         FileNotFoundError: no such file.
     """
@@ -302,7 +302,7 @@ def read_mocap_csv(
         if np.any(steps <= 0):
             r = int(np.argmax(steps <= 0)) + 1
             raise MocapFormatError(
-                f"times must be strictly increasing ({times[r - 1]!r} then {times[r]!r})",
+                f"times must be strictly increasing ({float(times[r - 1])!r} then {float(times[r])!r})",
                 path=path,
                 line=r + 2,
                 column=_column_label(0, TIME_COLUMN),
@@ -319,6 +319,19 @@ def parse_float_table(
     ``lines`` is the file line of the first row (rows on consecutive lines) or the line of every row; the
     :class:`MocapFormatError` for a field that is not a number names that line and the column.
     """
+    joined = "".join(tokens)
+    if "_" in joined or not joined.isascii():  # cheap screen; float() accepts "1_000" and "١٢"
+        for i, tok in enumerate(tokens):
+            try:
+                plain_float(tok)
+            except ValueError:
+                r, c = divmod(i, n_cols)
+                raise MocapFormatError(
+                    f"not a plain decimal number: {tok.strip()!r}",
+                    path=path,
+                    line=r + lines if isinstance(lines, int) else lines[r],
+                    column=_column_label(c, header[c]),
+                ) from None
     try:
         flat = np.array(tokens, dtype=np.float64)
     except ValueError:
