@@ -171,7 +171,7 @@ def _track(args) -> int:
     if seq.truth is not None:
         from torchpf import metrics
 
-        truth = skel.fk(seq.truth.to(torch.float64))
+        truth = skel.fk(seq.truth_in(skel.dof_names).to(torch.float64))
         est = skel.fk(result.angles)
         print(
             f"vs truth.csv: RMSE {float(metrics.rmse(truth, est)) * 100:.1f} cm, MPJPE "
@@ -232,13 +232,7 @@ def _calibrate(args) -> int:
     if args.init in ("auto", "truth"):
         if seq.truth is None:
             raise CliError(f"{args.sequence}: no truth.csv for the initial poses; pass --init POSE.csv")
-        if list(seq.dof_names) != list(skel.dof_names):
-            _, _, values = read_mocap_csv(
-                os.path.join(args.sequence, "truth.csv"), expected_dof_names=skel.dof_names
-            )
-            poses = torch.as_tensor(values, dtype=torch.float64)
-        else:
-            poses = seq.truth.to(torch.float64)
+        poses = seq.truth_in(skel.dof_names).to(torch.float64)
     else:
         _, _, values = read_mocap_csv(_require_file(args.init, "--init pose CSV"), skel.dof_names)
         poses = torch.as_tensor(values, dtype=torch.float64)

@@ -88,6 +88,19 @@ class SequenceData:
                 return len(x)
         return 0
 
+    def truth_in(self, dof_names) -> torch.Tensor | None:
+        """The ground truth (T, D) with its columns in ``dof_names`` order (a skeleton's; truth.csv may
+        list them in any order), or None; a ValueError when the columns are not the same set of DOFs."""
+        if self.truth is None or self.dof_names is None or list(self.dof_names) == list(dof_names):
+            return self.truth
+        have, want = list(self.dof_names), list(dof_names)
+        if sorted(have) != sorted(want):
+            extra, missing = sorted(set(have) - set(want)), sorted(set(want) - set(have))
+            raise ValueError(
+                f"truth.csv columns do not match the skeleton: unknown {extra}, missing {missing}"
+            )
+        return self.truth[:, [have.index(n) for n in want]]
+
     def frame(self, t: int) -> Frame:
         """The observations of frame ``t`` as a :class:`~torchpf.observations.Frame`."""
         sil = None
