@@ -23,6 +23,7 @@ Example::
 
 from __future__ import annotations
 
+import math
 import os
 import re
 import tempfile
@@ -351,6 +352,90 @@ def parse_float_table(
     return flat.reshape(-1, n_cols)
 
 
+# Deflate expands at most ~1032:1; a member claiming more than this ratio has a forged size field.
+_MAX_DEFLATE_RATIO = 1100
+
+
+def _npz_member(zf, info, path: str) -> np.ndarray:
+    """One ``.npy`` member of an open zip, its declared size checked against the bytes the zip holds
+    before anything is allocated (a mutated header can claim a shape of hundreds of GiB)."""
+    import zipfile
+
+    if info.compress_type not in (zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED):
+        raise ValueError(
+            f"member {info.filename!r}: compression method {info.compress_type} is not supported"
+        )
+    limit = (
+        info.compress_size
+        if info.compress_type == zipfile.ZIP_STORED
+        else (info.compress_size * _MAX_DEFLATE_RATIO + 1024)
+    )
+    if info.file_size > limit:
+        raise ValueError(f"member {info.filename!r}: size field {info.file_size} is corrupt")
+    with zf.open(info) as f:
+        version = np.lib.format.read_magic(f)
+        if version == (1, 0):
+            shape, fortran, dtype = np.lib.format.read_array_header_1_0(f)
+        elif version == (2, 0):
+            shape, fortran, dtype = np.lib.format.read_array_header_2_0(f)
+        else:
+            raise ValueError(f"member {info.filename!r}: .npy format version {version} is not supported")
+        if dtype.hasobject:
+            raise ValueError(f"member {info.filename!r}: object arrays are not read (no unpickling)")
+        nbytes = math.prod(shape) * dtype.itemsize  # Python ints: no overflow
+        if nbytes > info.file_size:
+            raise ValueError(
+                f"member {info.filename!r} declares shape {shape} of {dtype} ({nbytes} bytes) but holds "
+                f"{info.file_size} bytes"
+            )
+    with zf.open(info) as f:
+        return np.lib.format.read_array(f, allow_pickle=False)
+
+
+def read_npz(
+    path: str | os.PathLike, what: str, error: type[Exception] = ValueError
+) -> dict[str, np.ndarray]:
+    """The arrays of a ``.npz`` file, read defensively (untrusted input).
+
+    Every failure raises ``error`` with a message that starts with the path (not a zip, a corrupt or
+    unsupported member, an object array, a member whose declared shape needs more bytes than the file
+    holds: checked before allocating, so memory stays bounded by the file's own size); a missing file
+    raises ``FileNotFoundError`` naming it. Nothing is unpickled. ``what`` names the kind of file
+    (``"keypoints"``).
+    """
+    import tokenize
+    import zipfile
+    import zlib
+
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"{what.replace('-', ' ')} file not found: {path}")
+    try:
+        with zipfile.ZipFile(path) as zf:
+            return {
+                info.filename[: -len(".npy")]: _npz_member(zf, info, path)
+                for info in zf.infolist()
+                if info.filename.endswith(".npy")
+            }
+    except (
+        zipfile.BadZipFile,
+        zlib.error,
+        ValueError,
+        EOFError,
+        OSError,
+        KeyError,
+        NotImplementedError,
+        tokenize.TokenError,
+        SyntaxError,
+        MemoryError,
+        RecursionError,
+        OverflowError,
+        TypeError,
+    ) as e:
+        reason = " ".join(str(e).split())[:200]
+        raise error(f"{path}: not a readable {what} .npz file ({type(e).__name__}: {reason})") from None
+
+
 def read_versioned_npz(
     path: str | os.PathLike,
     fmt: str,
@@ -362,33 +447,25 @@ def read_versioned_npz(
 
     ``fmt`` is the format name the metadata must carry (``"metadata": {"format": fmt, "version": v, ...}``),
     ``max_version`` the newest version this code reads, ``what`` the kind of file for messages (``"action
-    model"``). Every failure raises ``error`` with a message that starts with the path: not a readable zip,
-    no or invalid metadata, another format, a version that is not a positive int or newer than
-    ``max_version``; a missing file raises ``FileNotFoundError`` naming it. Nothing is unpickled
-    (``allow_pickle=False``).
+    model"``). Every failure raises ``error`` with a message that starts with the path: not a readable zip
+    (:func:`read_npz`), no or invalid metadata, another format, a version that is not a positive int or
+    newer than ``max_version``; a missing file raises ``FileNotFoundError`` naming it. Nothing is
+    unpickled.
     """
     import json
-    import zipfile
-    import zlib
 
     path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise FileNotFoundError(f"{what.replace('-', ' ')} file not found: {path}")
 
     def bad(reason: str) -> Exception:
         return error(f"{path}: {reason}")
 
-    try:
-        with np.load(path, allow_pickle=False) as npz:
-            data = {key: npz[key] for key in npz.files}
-    except (zipfile.BadZipFile, zlib.error, ValueError, EOFError, OSError, KeyError) as e:
-        raise bad(f"not a readable {what} .npz file ({type(e).__name__}: {e})") from None
+    data = read_npz(path, what, error)
     article = "an" if what[:1].lower() in "aeiou" else "a"
     if "metadata" not in data:
         raise bad(f"not {article} {what} file (no 'metadata' entry)")
     try:
         meta = json.loads(str(data["metadata"]))
-    except (ValueError, TypeError) as e:
+    except (ValueError, TypeError, RecursionError) as e:
         raise bad(f"metadata is not valid JSON ({e})") from None
     if not isinstance(meta, dict) or meta.get("format") != fmt:
         raise bad(f"not {article} {what} file (metadata format is not {fmt!r})")

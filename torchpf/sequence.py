@@ -30,7 +30,7 @@ import numpy as np
 import torch
 
 from torchpf.camera import Camera, CameraRig, load_cameras, save_cameras
-from torchpf.io import read_mocap_csv, write_atomic, write_mocap_csv
+from torchpf.io import read_mocap_csv, read_npz, write_atomic, write_mocap_csv
 from torchpf.observations import Frame, Keypoints2D, PointCloud, Silhouettes
 
 __all__ = [
@@ -237,8 +237,13 @@ def read_sequence(path) -> SequenceData:
     kps = kj = None
     kpath = os.path.join(root, "keypoints.npz")
     if os.path.isfile(kpath):
-        with np.load(kpath) as z:
-            kps, kj = z["uv"], [str(j) for j in z["joints"]]
+        z = read_npz(kpath, "keypoints")
+        kps, kj = z.get("uv"), z.get("joints")
+        if kps is None or kj is None or kps.dtype.kind not in "fiu" or kps.shape[2:] != (kj.size, 2):
+            raise ValueError(f"{kpath}: expected a float array uv (T, V, J, 2) and joints (J,)")
+        if np.isinf(kps).any():
+            raise ValueError(f"{kpath}: uv holds infinite values (NaN marks a missing point)")
+        kj = [str(j) for j in kj.reshape(-1)]
     mask_cams = CameraRig([rig[n] for n in names])
     return SequenceData(
         cameras=mask_cams,
