@@ -12,20 +12,22 @@ several tracks (several runs of a stochastic tracker) with the ground truth: Fon
 dispersion and failure rate (eq. 3-6), MPJPE and the angle MSE. ``calibrate`` fits the body's capsule radii
 and scale to the first frames' masks (:func:`torchpf.calibrate.fit_body`), writes the fitted URDF and an
 overlay PNG (masks against the fitted model) next to it. Bad input ends with a one-line error and
-exit status 2.
+exit status 2, Ctrl-C with ``interrupted`` and status 130 (``--debug`` or ``TORCHPF_DEBUG=1``: the
+traceback); ``--threads N`` sets torch's threads (:mod:`torchpf.cli`).
 """
 
 from __future__ import annotations
 
 import argparse
 import os
-import sys
 
 import torch
 
+from torchpf.cli import CliError, add_runtime_options, check_memory, check_output_file, run_command
 
-class CliError(Exception):
-    """A user-facing error: printed as one line, exit status 2."""
+#: Memory per simultaneously scored particle and capsule (bytes), measured with the default cues (SIR, human
+#: skeleton, 27 capsules: ~35 KiB per particle): what ``--particles`` is checked against before the run.
+_BYTES_PER_PARTICLE_CAPSULE = 1400
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -58,12 +60,14 @@ def _parser() -> argparse.ArgumentParser:
     tr.add_argument("--device", help="cpu or cuda")
     tr.add_argument("--seed", type=int, default=0)
     tr.add_argument("--no-progress", action="store_true")
+    add_runtime_options(tr)
 
     ev = sub.add_parser("evaluate", help="compare tracks with the ground truth")
     ev.add_argument("tracks", nargs="+", help="track CSVs (several = several runs on one sequence)")
     ev.add_argument("--truth", required=True, help="ground-truth mocap CSV")
     ev.add_argument("--skeleton", required=True, help="URDF used for the joint positions")
     ev.add_argument("--threshold", type=float, default=0.25, help="T_failure (m), Fontmarty eq. 6")
+    add_runtime_options(ev)
 
     ca = sub.add_parser("calibrate", help="fit the body's radii and scale to the masks, write a URDF")
     ca.add_argument("sequence", help="sequence directory (cameras.yaml, masks/, truth.csv)")
@@ -79,6 +83,7 @@ def _parser() -> argparse.ArgumentParser:
     ca.add_argument("--fit-lengths", action="store_true", help="also fit one length factor per bone group")
     ca.add_argument("--iterations", type=int, default=400, help="most optimiser steps (default 400)")
     ca.add_argument("--no-progress", action="store_true")
+    add_runtime_options(ca)
     return ap
 
 
@@ -114,11 +119,23 @@ def _require_file(path: str, what: str) -> str:
     return path
 
 
+def _check_config_keys(config: dict, path: str) -> None:
+    import inspect
+
+    from torchpf.tracker import Tracker
+
+    allowed = [p for p in inspect.signature(Tracker.__init__).parameters if p not in ("self", "skeleton")]
+    unknown = sorted(str(k) for k in config if k not in allowed)
+    if unknown:
+        raise CliError(f"{path}: unknown key(s) {unknown}; a tracker config takes {allowed}")
+
+
 def _track(args) -> int:
     from torchpf.sequence import read_sequence
     from torchpf.skeleton import Skeleton
     from torchpf.tracker import Tracker
 
+    check_output_file(args.out)
     skel = Skeleton.from_urdf(_require_file(args.skeleton, "skeleton"))
     if not os.path.isdir(args.sequence):
         raise CliError(f"sequence directory not found: {args.sequence}")
@@ -130,8 +147,15 @@ def _track(args) -> int:
         import yaml
 
         with open(_require_file(args.config, "config"), encoding="utf-8") as f:
-            kwargs = dict(yaml.safe_load(f) or {})
+            try:
+                loaded = yaml.safe_load(f) or {}
+            except yaml.YAMLError as e:
+                raise CliError(f"{args.config}: invalid YAML ({' '.join(str(e).split())})") from None
+        if not isinstance(loaded, dict):
+            raise CliError(f"{args.config}: a tracker config must be a mapping of Tracker keywords")
+        kwargs = dict(loaded)
         kwargs.pop("skeleton", None)
+        _check_config_keys(kwargs, args.config)
     if args.action:
         kwargs["dynamics"] = args.dynamics or "action"
         kwargs["dynamics_options"] = {
@@ -157,6 +181,9 @@ def _track(args) -> int:
         if value is not None:
             kwargs[key] = value
     kwargs["progress"] = not args.no_progress
+    n = int(kwargs.get("n_particles", 500))
+    if not str(kwargs.get("device") or "cpu").startswith("cuda"):
+        check_memory(n * _BYTES_PER_PARTICLE_CAPSULE * max(len(skel.bones), 1), f"--particles {n}")
     if seq.times is not None and len(seq.times) > 1 and "fps" not in kwargs:
         kwargs["fps"] = 1.0 / float(seq.times[1] - seq.times[0])
     tracker = Tracker.from_config(kwargs, skeleton=skel, cameras=seq.cameras)
@@ -185,6 +212,8 @@ def _evaluate(args) -> int:
     from torchpf.io import read_mocap_csv
     from torchpf.skeleton import Skeleton
 
+    if not (0 < args.threshold < float("inf")):
+        raise CliError(f"--threshold must be a positive number of metres, got {args.threshold}")
     skel = Skeleton.from_urdf(_require_file(args.skeleton, "skeleton"))
     names = skel.dof_names
     _, _, truth_angles = read_mocap_csv(_require_file(args.truth, "truth"), expected_dof_names=names)
@@ -220,6 +249,7 @@ def _calibrate(args) -> int:
     from torchpf.sequence import read_sequence
     from torchpf.skeleton import Skeleton
 
+    check_output_file(args.out)
     skel = Skeleton.from_urdf(_require_file(args.skeleton, "skeleton"))
     if not os.path.isdir(args.sequence):
         raise CliError(f"sequence directory not found: {args.sequence}")
@@ -269,11 +299,7 @@ _COMMANDS = {"track": _track, "evaluate": _evaluate, "calibrate": _calibrate}
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
-    try:
-        return _COMMANDS[args.command](args)
-    except (CliError, ValueError, FileNotFoundError, OSError) as e:
-        print(f"python -m torchpf {args.command}: error: {e}", file=sys.stderr)
-        return 2
+    return run_command("python -m torchpf", args, _COMMANDS[args.command])
 
 
 if __name__ == "__main__":

@@ -292,7 +292,7 @@ class Camera:
             if key not in d:
                 raise CameraFileError(f"{where}: missing key {key!r}")
             v = d[key]
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or v <= 0 or int(v) != v:
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v < 2**31 or int(v) != v:
                 raise CameraFileError(f"{where}: key {key!r} must be a positive integer, got {v!r}")
             size[key] = int(v)
         R = values["R"]
@@ -563,7 +563,13 @@ def _camera_from_fs_map(m: Mapping, name: str, source: str) -> Camera:
         w, h = sz[0], sz[1]  # OpenCV writes Size as (width, height)
     if w is None or h is None:
         raise CameraFileError(f"{where}: missing key 'image_width'/'image_height' (or 'image_size')")
-    return Camera(K, R, t, dist, width=int(w), height=int(h), name=name)
+    try:
+        size = [float(np.asarray(v, dtype=np.float64).reshape(-1)[0]) for v in (w, h)]
+    except (TypeError, ValueError, IndexError):
+        size = [math.nan]
+    if not all(0 < v < 2**31 and v == int(v) for v in size):
+        raise CameraFileError(f"{where}: image width and height must be positive integers, got {w!r}, {h!r}")
+    return Camera(K, R, t, dist, width=int(size[0]), height=int(size[1]), name=name)
 
 
 def load_opencv_camera(path: str | os.PathLike, name: str | None = None) -> CameraRig:
@@ -577,14 +583,18 @@ def load_opencv_camera(path: str | os.PathLike, name: str | None = None) -> Came
     import cv2
 
     path = os.fspath(path)
-    fs = cv2.FileStorage(path, cv2.FILE_STORAGE_READ)
-    if not fs.isOpened():
-        raise CameraFileError(f"{path}: OpenCV cannot read this file as FileStorage YAML/XML")
-    try:
-        root = fs.root()
-        data = {k: _fs_value(root.getNode(k)) for k in root.keys()}
-    finally:
-        fs.release()
+    try:  # OpenCV's parser raises cv2.error (or SystemError) on a malformed file
+        fs = cv2.FileStorage(path, cv2.FILE_STORAGE_READ)
+        if not fs.isOpened():
+            raise CameraFileError(f"{path}: OpenCV cannot read this file as FileStorage YAML/XML")
+        try:
+            root = fs.root()
+            data = {k: _fs_value(root.getNode(k)) for k in root.keys()}
+        finally:
+            fs.release()
+    except (cv2.error, SystemError) as e:
+        reason = " ".join(str(e).split())[-200:]
+        raise CameraFileError(f"{path}: OpenCV cannot parse this FileStorage file ({reason})") from None
     if any(alias in data for alias in _FS_KEYS["K"]):
         cam_name = name or os.path.splitext(os.path.basename(path))[0]
         return CameraRig([_camera_from_fs_map(data, cam_name, path)])
@@ -607,8 +617,11 @@ def load_cameras(path: str | os.PathLike) -> CameraRig:
     import yaml
 
     path = os.fspath(path)
-    with open(path, encoding="utf-8") as f:
-        text = f.read()
+    try:
+        with open(path, encoding="utf-8") as f:
+            text = f.read()
+    except UnicodeDecodeError as e:
+        raise CameraFileError(f"{path}: not UTF-8 text ({e.reason} at byte {e.start})") from None
     if _is_filestorage(text):
         return load_opencv_camera(path)
     try:

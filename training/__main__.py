@@ -13,7 +13,8 @@ tracks in the skeleton's ``dof_names`` order (see :mod:`training.mocap`). ``fit`
 (:mod:`priors.action`); ``inspect`` prints its summary and saves the plots of Rius Fig. 1
 (:mod:`training.plots`). ``fit-dynamics`` learns per-DOF step stds and the constant-velocity α
 (:mod:`training.dynamics`) for ``python -m torchpf track --dynamics dyn.npz``. Bad input ends with a
-one-line ``error:`` message on stderr and exit status 2. Each command is one subparser with its own
+one-line ``error:`` message on stderr and exit status 2, Ctrl-C with ``interrupted`` and status 130; every
+command takes ``--threads N`` and ``--debug`` (:mod:`torchpf.cli`). Each command is one subparser with its own
 ``--help``; more commands plug in the same way through :func:`build_parser`.
 """
 
@@ -23,6 +24,8 @@ import argparse
 import math
 import sys
 from pathlib import Path
+
+from torchpf.cli import add_runtime_options, check_output_dir, check_output_file, run_command
 
 PROG = "python -m training"
 
@@ -43,6 +46,7 @@ def _convert(args: argparse.Namespace) -> int:
     from torchpf.skeleton import Skeleton
     from training.mocap import bvh_motion, bvh_to_urdf, read_bvh, save_csv
 
+    check_output_dir(args.out_dir, "--out-dir")
     bvh = read_bvh(args.file)
     urdf = bvh_to_urdf(bvh, args.scale)
     skel = Skeleton.from_urdf(urdf)
@@ -81,6 +85,7 @@ def _fit(args: argparse.Namespace) -> int:
 
     if args.out.suffix != ".npz":
         raise ValueError(f"--out must name a .npz file, got {str(args.out)!r}")
+    check_output_file(args.out)
     skeleton = Skeleton.from_urdf(args.skeleton) if args.skeleton else None
     dof_names = skeleton.dof_names if skeleton is not None else None
     motions = []
@@ -130,6 +135,7 @@ def _inspect(args: argparse.Namespace) -> int:
     from priors.action import ActionModel
     from training.plots import describe, plot_explained_variance, plot_synchronisation
 
+    check_output_dir(args.out)
     model = ActionModel.load(args.model)
     print(describe(model))
     paths = [
@@ -149,6 +155,7 @@ def _fit_dynamics(args: argparse.Namespace) -> int:
         raise ValueError(f"--out must name a .npz file, got {str(args.out)!r}")
     if args.skip_first < 0:
         raise ValueError(f"--skip-first must be >= 0, got {args.skip_first}")
+    check_output_file(args.out)
     skeleton = Skeleton.from_urdf(args.skeleton)
     stats = learn_from_files(args.files, skeleton, fps=args.fps, alpha=args.alpha, skip_first=args.skip_first)
     stats.save(args.out)
@@ -179,6 +186,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="metres per file unit (CMU clips: 0.056444; default 1)",
     )
     convert.add_argument("--out-dir", required=True, metavar="DIR", help="output folder (created if missing)")
+    add_runtime_options(convert)
     convert.set_defaults(func=_convert)
 
     fit = commands.add_parser(
@@ -241,6 +249,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="also measure, for each performance, how often a model fitted without it accepts its frames",
     )
     fit.add_argument("--quiet", action="store_true", help="no progress bars")
+    add_runtime_options(fit)
     fit.set_defaults(func=_fit)
 
     inspect = commands.add_parser(
@@ -253,6 +262,7 @@ def build_parser() -> argparse.ArgumentParser:
     inspect.add_argument("model", metavar="MODEL.npz", help="action model written by 'fit'")
     inspect.add_argument("--out", required=True, metavar="DIR", help="folder for the PNG files")
     inspect.add_argument("--dims", type=int, default=4, help="aSpace dimensions to plot (4)")
+    add_runtime_options(inspect)
     inspect.set_defaults(func=_inspect)
 
     dyn = commands.add_parser(
@@ -276,23 +286,17 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="N",
         help="drop the first N frames of every file (CMU conversions: 1, a rest pose)",
     )
+    add_runtime_options(dyn)
     dyn.set_defaults(func=_fit_dynamics)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Run the command line; returns the exit status (0 ok, 2 bad input)."""
+    """Run the command line; returns the exit status (0 ok, 2 bad input, 130 interrupted)."""
     parser = build_parser()
     args = parser.parse_args(argv)  # exits with status 2 and a usage line on malformed arguments
-    try:
-        return args.func(args)
-    except OSError as e:  # missing file, unwritable folder: "path: reason" rather than "[Errno 2] ..."
-        where = f"{e.filename}: " if e.filename is not None else ""
-        print(f"{PROG} {args.command}: error: {where}{e.strerror or e}", file=sys.stderr)
-    except ValueError as e:  # MocapFormatError included: its message names file, line and column
-        message = " ".join(str(e).split())  # one line, whatever the message
-        print(f"{PROG} {args.command}: error: {message}", file=sys.stderr)
-    return 2
+    # MocapFormatError's message names file, line and column; an OSError prints as "path: reason"
+    return run_command(PROG, args, args.func)
 
 
 if __name__ == "__main__":
