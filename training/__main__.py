@@ -43,13 +43,12 @@ def _positive_float(text: str) -> float:
 def _convert(args: argparse.Namespace) -> int:
     # Imported here so that `--help` answers without loading torch.
     from torchpf.io import write_text_atomic
-    from torchpf.skeleton import Skeleton
-    from training.mocap import bvh_motion, bvh_to_urdf, read_bvh, save_csv
+    from training.mocap import bvh_motion, bvh_to_urdf, read_bvh, save_csv, skeleton_from_urdf
 
     check_output_dir(args.out_dir, "--out-dir")
     bvh = read_bvh(args.file)
     urdf = bvh_to_urdf(bvh, args.scale)
-    skel = Skeleton.from_urdf(urdf)
+    skel = skeleton_from_urdf(bvh, urdf)
     motion = bvh_motion(bvh, args.scale, dof_names=skel.dof_names)
     out = Path(args.out_dir)
     urdf_path, csv_path = out / "skeleton.urdf", out / f"{Path(args.file).stem}.csv"

@@ -372,6 +372,8 @@ def _parse_hierarchy(tokens: _Tokens) -> list[dict]:
             name, ln = tokens.next("a joint name")
             if name in ("{", "}"):
                 raise tokens.error(f"missing joint name before {name!r}", ln)
+            if not name.isprintable():  # control characters cannot go into the URDF (XML) it becomes
+                raise tokens.error(f"joint name {name!r} holds control characters", ln)
         label = "End Site" if end_site else f"joint {name!r}"
         if len(stack) >= MAX_TREE_DEPTH:
             raise tokens.error(
@@ -704,6 +706,16 @@ def bvh_motion(
     return Motion(names, bvh.fps, torch.from_numpy(np.ascontiguousarray(angles)), name=Path(bvh.path).stem)
 
 
+def skeleton_from_urdf(bvh: BvhData, urdf: str) -> Skeleton:
+    """:meth:`Skeleton.from_urdf` of :func:`bvh_to_urdf`'s text; an error names the BVH file, not the URDF
+    string (e.g. a joint name the URDF cannot carry)."""
+    try:
+        return Skeleton.from_urdf(urdf)
+    except ValueError as e:
+        reason = " ".join(str(e).split())
+        raise MocapFormatError(f"the converted skeleton is invalid ({reason})", path=bvh.path) from None
+
+
 def load_bvh(
     path: str | os.PathLike,
     scale: float = 1.0,
@@ -727,5 +739,5 @@ def load_bvh(
         MocapFormatError: malformed file, naming file, line and column.
     """
     bvh = read_bvh(path)
-    skel = Skeleton.from_urdf(bvh_to_urdf(bvh, scale, radii=radii))
+    skel = skeleton_from_urdf(bvh, bvh_to_urdf(bvh, scale, radii=radii))
     return skel, bvh_motion(bvh, scale, dof_names=skel.dof_names)

@@ -408,3 +408,8 @@ def test_motion_validation_and_helpers():
         Motion(["a", "a"], 50, torch.zeros(3, 2))
     with pytest.raises(ValueError, match="fps"):
         Motion(["a"], 0, torch.zeros(3, 1))
+
+
+def test_control_characters_in_joint_names_name_the_file(tmp_path):
+    err = _error(tmp_path, GOOD.replace("JOINT Chest", "JOINT Chest\x12"))
+    assert "holds control characters" in str(err) and err.line == 6
