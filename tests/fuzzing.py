@@ -7,7 +7,7 @@ The tests (``test_fuzz_*.py``) draw mutation plans with hypothesis (``derandomiz
 examples is ``FUZZ_EXAMPLES``, raised by the environment variable ``TORCHPF_FUZZ_EXAMPLES``). Counting the
 failing mutations of a loader, e.g. before and after a fix::
 
-    PYTHONPATH=. python -m tests.fuzzing bvh csv urdf action --n 500
+    PYTHONPATH=. python -m tests.fuzzing bvh csv urdf action keypoints --n 500
 """
 
 from __future__ import annotations
@@ -259,12 +259,39 @@ def load_action(path: str) -> str | None:
     return None
 
 
-#: name -> (seed bytes factory, file suffix, mutate(data, plan), loader(path) -> failure or None)
+def seed_keypoints() -> bytes:
+    """A ``keypoints.npz`` of a sequence directory: uv (T=3, V=1, J=2, 2) with a missing point, joints."""
+    uv = np.array(
+        [[[[10.0, 20.0], [np.nan, np.nan]]], [[[11.0, 21.0], [30.0, 40.0]]], [[[12, 22], [31, 41]]]]
+    )
+    b = io.BytesIO()
+    np.savez(b, uv=uv.astype(np.float32), joints=np.array(["Head", "Hips"]), cameras=np.array(["cam0"]))
+    return b.getvalue()
+
+
+def load_keypoints(path: str) -> str | None:
+    from torchpf.camera import camera_ring, save_cameras
+    from torchpf.sequence import read_sequence
+
+    folder = os.path.dirname(path)
+    if not os.path.exists(os.path.join(folder, "cameras.yaml")):
+        save_cameras(os.path.join(folder, "cameras.yaml"), camera_ring(1, width=64, height_px=48))
+    seq = read_sequence(folder)
+    uv = seq.keypoints
+    if uv is None or uv.ndim != 4 or uv.shape[-2:] != (len(seq.keypoint_joints), 2):
+        return "keypoints missing or of the wrong shape"
+    if np.isinf(uv).any():
+        return "infinite keypoints"
+    return None
+
+
+#: name -> (seed bytes factory, file name ending, mutate(data, plan), loader(path) -> failure or None)
 LOADERS: dict[str, tuple[Callable[[], bytes], str, Callable, Callable[[str], str | None]]] = {
     "bvh": (lambda: SEED_BVH.encode(), ".bvh", lambda d, p: mutate(d, p, BVH_TOKENS), load_bvh),
     "csv": (lambda: SEED_CSV.encode(), ".csv", lambda d, p: mutate(d, p, CSV_TOKENS), load_csv),
     "urdf": (lambda: seed_urdf().encode(), ".urdf", lambda d, p: mutate(d, p, URDF_TOKENS), load_urdf),
     "action": (seed_action_model, ".npz", mutate_npz, load_action),
+    "keypoints": (seed_keypoints, "/keypoints.npz", mutate_npz, load_keypoints),
 }
 
 
@@ -296,7 +323,7 @@ def check(name: str, plan, folder: str) -> str:
     """Mutate the seed of loader ``name`` with ``plan``, write it into ``folder`` and load it."""
     seed, suffix, mutator, loader = LOADERS[name]
     data = mutator(_seed_bytes(name, seed), plan)
-    path = os.path.join(folder, f"mutant{suffix}")
+    path = os.path.join(folder, suffix.lstrip("/") if suffix.startswith("/") else f"mutant{suffix}")
     with open(path, "wb") as f:
         f.write(data)
     return outcome(loader, path)
