@@ -218,6 +218,8 @@ def _evaluate(args) -> int:
     names = skel.dof_names
     _, _, truth_angles = read_mocap_csv(_require_file(args.truth, "truth"), expected_dof_names=names)
     truth_angles = torch.as_tensor(truth_angles, dtype=torch.float64)
+    if truth_angles.shape[0] == 0:
+        raise CliError(f"{args.truth}: no frames to evaluate")
     runs = []
     for path in args.tracks:
         _, _, angles = read_mocap_csv(_require_file(path, "track"), expected_dof_names=names)

@@ -118,6 +118,10 @@ def test_track_refuses_bad_config_particles_and_threshold(seq_dir, tmp_path, cap
     argv = ["evaluate", str(track), "--truth", str(track), "--skeleton", URDF, "--threshold", "-1"]
     assert main(argv) == 2
     _one_line_error(capsys, "--threshold must be a positive number")
+    empty = tmp_path / "empty.csv"
+    empty.write_text(",".join(Skeleton.from_urdf(URDF).dof_names) + "\n")
+    assert main(["evaluate", str(empty), "--truth", str(empty), "--skeleton", URDF]) == 2
+    _one_line_error(capsys, "empty.csv: no frames to evaluate")
 
 
 def test_unreadable_inputs_name_the_file(seq_dir, tmp_path, capsys):
