@@ -171,31 +171,12 @@ def seed_urdf() -> str:
 
 
 def seed_action_model() -> bytes:
-    """A small action model file (5 DOFs, D=2, K=4, with training data) as bytes."""
-    import torch
+    """The small action model of the action-model tests (5 DOFs, D=2, K=4) as file bytes."""
+    from .priors.test_action import tiny_model
 
-    from priors.action import ActionModel
-
-    names = ["Hips_Xposition", "Hips_Zrotation", "Knee_Xrotation", "Elbow_Xrotation", "Hand_Xrotation"]
-    u = torch.tensor([[1.0, 1.0, 0.0], [1.0, -1.0, 0.0]], dtype=torch.float64) / math.sqrt(2.0)
-    model = ActionModel(
-        dof_names=names,
-        posture_dofs=names[2:],
-        center=[0.2, -0.1, 3.0],
-        pca_mean=[0.2, -0.1, 3.0],
-        components=u,
-        mean_performance=[[0.0, 0.0], [0.5, 0.1], [1.0, 0.0], [0.5, -0.1]],
-        std=[[0.1, 0.05], [0.1, 0.05], [0.2, 0.05], [0.1, 0.05]],
-        delta=[0.2, 0.05],
-        sigma_phi=[0.01, 0.02, 0.03, 0.03, 0.0],
-        alpha=0.25,
-        fps=30.0,
-        action="test",
-        cyclic=True,
-    )
     with tempfile.TemporaryDirectory() as d:
         path = os.path.join(d, "seed.npz")
-        model.save(path)
+        tiny_model().save(path)
         with open(path, "rb") as f:
             return f.read()
 
@@ -336,6 +317,23 @@ def _seed_bytes(name: str, factory) -> bytes:
     if name not in _SEEDS:
         _SEEDS[name] = factory()
     return _SEEDS[name]
+
+
+def fuzz_test(name: str):
+    """The hypothesis test of loader ``name``: ``FUZZ_EXAMPLES`` derandomized mutation plans, each ending in
+    ``"ok"`` or ``"error"`` (``test_bvh_mutations = fuzz_test("bvh")`` in the package's test folder)."""
+    from hypothesis import HealthCheck, given, settings
+
+    @settings(
+        derandomize=True, max_examples=FUZZ_EXAMPLES, deadline=None, suppress_health_check=list(HealthCheck)
+    )
+    @given(plan=plans())
+    def test(plan):
+        with tempfile.TemporaryDirectory() as folder:
+            assert check(name, plan, folder) in ("ok", "error")
+
+    test.__name__ = f"test_{name}_mutations"
+    return test
 
 
 def count(name: str, n: int, seed: int = 0) -> Counter:

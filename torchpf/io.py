@@ -320,35 +320,38 @@ def parse_float_table(
     ``lines`` is the file line of the first row (rows on consecutive lines) or the line of every row; the
     :class:`MocapFormatError` for a field that is not a number names that line and the column.
     """
-    joined = "".join(tokens)
-    if "_" in joined or not joined.isascii():  # cheap screen; float() accepts "1_000" and "١٢"
+
+    def first_bad() -> MocapFormatError | None:
         for i, tok in enumerate(tokens):
             try:
                 plain_float(tok)
             except ValueError:
+                try:
+                    float(tok)
+                    what = "not a plain decimal number"  # "1_000", Arabic-Indic digits: float() takes them
+                except ValueError:
+                    what = "not a number"
                 r, c = divmod(i, n_cols)
-                raise MocapFormatError(
-                    f"not a plain decimal number: {tok.strip()!r}",
+                return MocapFormatError(
+                    f"{what}: {tok.strip()!r}",
                     path=path,
                     line=r + lines if isinstance(lines, int) else lines[r],
                     column=_column_label(c, header[c]),
-                ) from None
+                )
+        return None
+
+    joined = "".join(tokens)
+    if "_" in joined or not joined.isascii():  # cheap screen before the per-field check
+        error = first_bad()
+        if error is not None:
+            raise error
     try:
         flat = np.array(tokens, dtype=np.float64)
     except ValueError:
-        # Slow path only to locate the culprit for the message.
-        for i, tok in enumerate(tokens):
-            try:
-                float(tok)
-            except ValueError:
-                r, c = divmod(i, n_cols)
-                raise MocapFormatError(
-                    f"not a number: {tok.strip()!r}",
-                    path=path,
-                    line=r + lines if isinstance(lines, int) else lines[r],
-                    column=_column_label(c, header[c]),
-                ) from None
-        raise  # numpy rejected something Python accepts: let its message through
+        error = first_bad()  # slow path only to locate the culprit for the message
+        if error is not None:
+            raise error from None
+        raise  # numpy rejected something plain_float accepts: let its message through
     return flat.reshape(-1, n_cols)
 
 

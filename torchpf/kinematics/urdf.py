@@ -384,6 +384,19 @@ def _check_geometry(link: ET.Element, where: str) -> None:
                     raise ValueError(f"{label}: <{shape.tag} {key}={shape.get(key)!r}> must be > 0")
 
 
+def _by_name(root: ET.Element, tag: str, source: str) -> dict[str, ET.Element]:
+    """The ``<tag>`` children of ``root`` by name, in file order; every one named, no name twice."""
+    out: dict[str, ET.Element] = {}
+    for k, el in enumerate(root.findall(tag)):
+        name = el.get("name")
+        if not name:
+            raise ValueError(f"{source}: <{tag}> number {k + 1} has no name")
+        if name in out:
+            raise ValueError(f"{source}: duplicate {tag} name {name!r}")
+        out[name] = el
+    return out
+
+
 def validate_urdf(root: ET.Element, source: str) -> None:
     """Refuse a URDF that would load as a different or broken skeleton; the ValueError names the element.
 
@@ -396,27 +409,14 @@ def validate_urdf(root: ET.Element, source: str) -> None:
     """
     if root.tag != "robot":
         raise ValueError(f"{source}: the root element is <{root.tag}>, expected <robot>")
-    links: dict[str, ET.Element] = {}
-    for k, link in enumerate(root.findall("link")):
-        name = link.get("name")
-        if not name:
-            raise ValueError(f"{source}: <link> number {k + 1} has no name")
-        if name in links:
-            raise ValueError(f"{source}: duplicate link name {name!r}")
-        links[name] = link
+    links = _by_name(root, "link", source)
+    for name, link in links.items():
         _check_geometry(link, f"{source}: link {name!r}")
     if not links:
         raise ValueError(f"{source}: no <link>")
-    joint_names: set[str] = set()
     parent_of: dict[str, str] = {}
     children: dict[str, list[str]] = {n: [] for n in links}
-    for k, joint in enumerate(root.findall("joint")):
-        name = joint.get("name")
-        if not name:
-            raise ValueError(f"{source}: <joint> number {k + 1} has no name")
-        if name in joint_names:
-            raise ValueError(f"{source}: duplicate joint name {name!r}")
-        joint_names.add(name)
+    for name, joint in _by_name(root, "joint", source).items():
         where = f"{source}: joint {name!r}"
         ends = {}
         for end in ("parent", "child"):
