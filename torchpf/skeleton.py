@@ -22,7 +22,7 @@ of ``q`` m along (prismatic) the joint axis.
 
 Capsule geometry (Hauberg §5): one capsule per bone (parent body joint -> child body joint) whose radius is
 read from the URDF ``<collision>``/``<visual>`` cylinder or capsule of the parent link (``name`` = child),
-else from a radii table, else ``0.15 x`` bone length.
+else from a radii table, else ``0.15 x`` bone length (0.01 m for a bone of zero rest length).
 
 Example::
 
@@ -344,7 +344,8 @@ class Skeleton(nn.Module):
                     if n_bones == 1 and len(unnamed) == 1:
                         radius = unnamed[0]
             if radius is None:
-                radius = 0.15 * length
+                # a bone of zero rest length (a prismatic one) still needs a positive radius: URDF refuses 0
+                radius = 0.15 * length if length > 1e-9 else 0.01
             bones.append((p, c))
             r.append(float(radius))
         self.bones: list[tuple[int, int]] = bones
@@ -581,8 +582,8 @@ class Skeleton(nn.Module):
                 l_joint = torch.as_tensor(lengths, dtype=torch.float64).reshape(-1)
                 if l_joint.shape != (len(self.joint_names),):
                     raise ValueError(f"with_body: lengths must have shape ({len(self.joint_names)},)")
-        if not scale > 0 or not bool((l_joint > 0).all()) or not bool((r >= 0).all()):
-            raise ValueError("with_body: scale and lengths must be > 0, radii >= 0")
+        if not scale > 0 or not bool((l_joint > 0).all()) or not bool((r > 0).all()):
+            raise ValueError("with_body: scale, lengths and radii must be > 0")
         root = parse_urdf_xml(self.urdf_xml, self.source)
         joint_above = {j.find("child").get("link"): j.get("name") for j in root.iter("joint")}
         frames = flatten_chain(self.chain)

@@ -341,8 +341,11 @@ MAX_TREE_DEPTH = 256
 _MOVABLE = ("revolute", "continuous", "prismatic")
 
 
-def _numbers(el: ET.Element, attr: str, n: int, where: str, default: str | None = None) -> list[float]:
-    """The ``n`` finite numbers of attribute ``attr`` of ``el``; a ValueError naming ``where`` otherwise."""
+def _numbers(
+    el: ET.Element, attr: str, n: int, where: str, default: str | None = None, bound: float = MAX_COORDINATE
+) -> list[float]:
+    """The ``n`` finite numbers (``|v| <= bound``) of attribute ``attr`` of ``el``; a ValueError naming
+    ``where`` otherwise."""
     from torchpf.io import plain_float
 
     text = el.get(attr, default)
@@ -354,9 +357,9 @@ def _numbers(el: ET.Element, attr: str, n: int, where: str, default: str | None 
         raise ValueError(f"{where}: <{el.tag} {attr}={text!r}>: not {n} number(s)") from None
     if len(values) != n:
         raise ValueError(f"{where}: <{el.tag} {attr}={text!r}>: expected {n} number(s), got {len(values)}")
-    if not all(math.isfinite(v) and abs(v) <= MAX_COORDINATE for v in values):
+    if not all(math.isfinite(v) and abs(v) <= bound for v in values):
         raise ValueError(
-            f"{where}: <{el.tag} {attr}={text!r}>: numbers must be finite and within +-{MAX_COORDINATE:g}"
+            f"{where}: <{el.tag} {attr}={text!r}>: numbers must be finite and within +-{bound:g}"
         )
     return values
 
@@ -403,9 +406,9 @@ def validate_urdf(root: ET.Element, source: str) -> None:
     Checked: joint and link names present and unique; every joint's ``<parent link>`` and ``<child link>``
     name a ``<link>`` of the file; no link is the child of two joints; one root (one link that is no joint's
     child) from which every link is reached (a typo in a parent link would otherwise drop the subtree
-    silently), at most :data:`MAX_TREE_DEPTH` deep; origins, axes, limits and geometry sizes finite numbers
-    within +-:data:`MAX_COORDINATE`; movable joints' axes non-zero; limits ``lower <= upper``; radii and box
-    sizes > 0, lengths >= 0.
+    silently), at most :data:`MAX_TREE_DEPTH` deep; origins, axes and geometry sizes finite numbers within
+    +-:data:`MAX_COORDINATE`; movable joints' axes non-zero; limits finite with ``lower <= upper``; radii
+    and box sizes > 0, lengths >= 0.
     """
     if root.tag != "robot":
         raise ValueError(f"{source}: the root element is <{root.tag}>, expected <robot>")
@@ -442,8 +445,9 @@ def validate_urdf(root: ET.Element, source: str) -> None:
                 raise ValueError(f"{where}: the axis is zero")
             limit = joint.find("limit")
             if limit is not None and jtype != "continuous":
-                lower = _numbers(limit, "lower", 1, where, "0")[0]
-                upper = _numbers(limit, "upper", 1, where, "0")[0]
+                # robot files write "no limit" as +-1e16 and the like: any finite float32 passes
+                lower = _numbers(limit, "lower", 1, where, "0", bound=3e38)[0]
+                upper = _numbers(limit, "upper", 1, where, "0", bound=3e38)[0]
                 if lower > upper:
                     raise ValueError(f"{where}: lower limit {lower:g} > upper limit {upper:g}")
     roots = [n for n in links if n not in parent_of]
