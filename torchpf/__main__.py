@@ -17,20 +17,22 @@ and scale to the first frames' masks (:func:`torchpf.calibrate.fit_body`), write
 overlay PNG (masks against the fitted model) next to it. ``masks`` segments synchronised videos (one per
 camera) by background subtraction into a sequence directory (:mod:`torchpf.video`); ``render`` draws a
 track's body model over each camera's video frame or mask, side by side (:mod:`torchpf.render`). Bad input
-ends with a one-line error and exit status 2.
+ends with a one-line error and exit status 2, Ctrl-C with ``interrupted`` and status 130 (``--debug`` or
+``TORCHPF_DEBUG=1``: the traceback); ``--threads N`` sets torch's threads (:mod:`torchpf.cli`).
 """
 
 from __future__ import annotations
 
 import argparse
 import os
-import sys
 
 import torch
 
+from torchpf.cli import CliError, add_runtime_options, check_memory, check_output_file, run_command
 
-class CliError(Exception):
-    """A user-facing error: printed as one line, exit status 2."""
+#: Memory per simultaneously scored particle and capsule (bytes), measured with the default cues (SIR, human
+#: skeleton, 27 capsules: ~35 KiB per particle): what ``--particles`` is checked against before the run.
+_BYTES_PER_PARTICLE_CAPSULE = 1400
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -70,12 +72,14 @@ def _parser() -> argparse.ArgumentParser:
     tr.add_argument("--device", help="cpu or cuda")
     tr.add_argument("--seed", type=int, default=0)
     tr.add_argument("--no-progress", action="store_true")
+    add_runtime_options(tr)
 
     ev = sub.add_parser("evaluate", help="compare tracks with the ground truth")
     ev.add_argument("tracks", nargs="+", help="track CSVs (several = several runs on one sequence)")
     ev.add_argument("--truth", required=True, help="ground-truth mocap CSV")
     ev.add_argument("--skeleton", required=True, help="URDF used for the joint positions")
     ev.add_argument("--threshold", type=float, default=0.25, help="T_failure (m), Fontmarty eq. 6")
+    add_runtime_options(ev)
 
     ca = sub.add_parser("calibrate", help="fit the body's radii and scale to the masks, write a URDF")
     ca.add_argument("sequence", help="sequence directory (cameras.yaml, masks/, truth.csv)")
@@ -91,6 +95,7 @@ def _parser() -> argparse.ArgumentParser:
     ca.add_argument("--fit-lengths", action="store_true", help="also fit one length factor per bone group")
     ca.add_argument("--iterations", type=int, default=400, help="most optimiser steps (default 400)")
     ca.add_argument("--no-progress", action="store_true")
+    add_runtime_options(ca)
 
     ma = sub.add_parser("masks", help="videos or image folders -> silhouettes -> a sequence directory")
     ma.add_argument("sources", nargs="+", help="one video file or image folder per camera (named after it)")
@@ -123,6 +128,7 @@ def _parser() -> argparse.ArgumentParser:
     ma.add_argument("--no-video", action="store_true", help="do not write video/<camera>.mp4")
     ma.add_argument("--fps", type=float, help="frame rate of the written videos (default: the input's)")
     ma.add_argument("--no-progress", action="store_true")
+    add_runtime_options(ma)
 
     re_ = sub.add_parser("render", help="draw a track's body model over the sequence, cameras side by side")
     re_.add_argument("track", help="track CSV (python -m torchpf track --out)")
@@ -135,6 +141,7 @@ def _parser() -> argparse.ArgumentParser:
     re_.add_argument("--fps", type=float, help="video frame rate (default: the track's time column, else 30)")
     re_.add_argument("--min-height", type=int, default=240, help="enlarge smaller tiles to this height (px)")
     re_.add_argument("--no-progress", action="store_true")
+    add_runtime_options(re_)
     return ap
 
 
@@ -170,11 +177,23 @@ def _require_file(path: str, what: str) -> str:
     return path
 
 
+def _check_config_keys(config: dict, path: str) -> None:
+    import inspect
+
+    from torchpf.tracker import Tracker
+
+    allowed = [p for p in inspect.signature(Tracker.__init__).parameters if p not in ("self", "skeleton")]
+    unknown = sorted(str(k) for k in config if k not in allowed)
+    if unknown:
+        raise CliError(f"{path}: unknown key(s) {unknown}; a tracker config takes {allowed}")
+
+
 def _track(args) -> int:
     from torchpf.sequence import read_sequence
     from torchpf.skeleton import Skeleton
     from torchpf.tracker import Tracker
 
+    check_output_file(args.out)
     skel = Skeleton.from_urdf(_require_file(args.skeleton, "skeleton"))
     if not os.path.isdir(args.sequence):
         raise CliError(f"sequence directory not found: {args.sequence}")
@@ -188,8 +207,15 @@ def _track(args) -> int:
         import yaml
 
         with open(_require_file(args.config, "config"), encoding="utf-8") as f:
-            kwargs = dict(yaml.safe_load(f) or {})
+            try:
+                loaded = yaml.safe_load(f) or {}
+            except yaml.YAMLError as e:
+                raise CliError(f"{args.config}: invalid YAML ({' '.join(str(e).split())})") from None
+        if not isinstance(loaded, dict):
+            raise CliError(f"{args.config}: a tracker config must be a mapping of Tracker keywords")
+        kwargs = dict(loaded)
         kwargs.pop("skeleton", None)
+        _check_config_keys(kwargs, args.config)
     if args.action:
         kwargs["dynamics"] = args.dynamics or "action"
         kwargs["dynamics_options"] = {
@@ -215,6 +241,9 @@ def _track(args) -> int:
         if value is not None:
             kwargs[key] = value
     kwargs["progress"] = not args.no_progress
+    n = int(kwargs.get("n_particles", 500))
+    if not str(kwargs.get("device") or "cpu").startswith("cuda"):
+        check_memory(n * _BYTES_PER_PARTICLE_CAPSULE * max(len(skel.bones), 1), f"--particles {n}")
     if seq.times is not None and len(seq.times) > 1 and "fps" not in kwargs:
         kwargs["fps"] = 1.0 / float(seq.times[1] - seq.times[0])
     tracker = Tracker.from_config(kwargs, skeleton=skel, cameras=seq.cameras)
@@ -235,7 +264,7 @@ def _track(args) -> int:
     if seq.truth is not None:
         from torchpf import metrics
 
-        truth = skel.fk(seq.truth.to(torch.float64))
+        truth = skel.fk(seq.truth_in(skel.dof_names).to(torch.float64))
         est = skel.fk(result.angles)
         print(
             f"vs truth.csv: RMSE {float(metrics.rmse(truth, est)) * 100:.1f} cm, MPJPE "
@@ -249,10 +278,14 @@ def _evaluate(args) -> int:
     from torchpf.io import read_mocap_csv
     from torchpf.skeleton import Skeleton
 
+    if not (0 < args.threshold < float("inf")):
+        raise CliError(f"--threshold must be a positive number of metres, got {args.threshold}")
     skel = Skeleton.from_urdf(_require_file(args.skeleton, "skeleton"))
     names = skel.dof_names
     _, _, truth_angles = read_mocap_csv(_require_file(args.truth, "truth"), expected_dof_names=names)
     truth_angles = torch.as_tensor(truth_angles, dtype=torch.float64)
+    if truth_angles.shape[0] == 0:
+        raise CliError(f"{args.truth}: no frames to evaluate")
     runs = []
     for path in args.tracks:
         _, _, angles = read_mocap_csv(_require_file(path, "track"), expected_dof_names=names)
@@ -284,6 +317,7 @@ def _calibrate(args) -> int:
     from torchpf.sequence import read_sequence
     from torchpf.skeleton import Skeleton
 
+    check_output_file(args.out)
     skel = Skeleton.from_urdf(_require_file(args.skeleton, "skeleton"))
     if not os.path.isdir(args.sequence):
         raise CliError(f"sequence directory not found: {args.sequence}")
@@ -296,13 +330,7 @@ def _calibrate(args) -> int:
     if args.init in ("auto", "truth"):
         if seq.truth is None:
             raise CliError(f"{args.sequence}: no truth.csv for the initial poses; pass --init POSE.csv")
-        if list(seq.dof_names) != list(skel.dof_names):
-            _, _, values = read_mocap_csv(
-                os.path.join(args.sequence, "truth.csv"), expected_dof_names=skel.dof_names
-            )
-            poses = torch.as_tensor(values, dtype=torch.float64)
-        else:
-            poses = seq.truth.to(torch.float64)
+        poses = seq.truth_in(skel.dof_names).to(torch.float64)
     else:
         _, _, values = read_mocap_csv(_require_file(args.init, "--init pose CSV"), skel.dof_names)
         poses = torch.as_tensor(values, dtype=torch.float64)
@@ -415,11 +443,7 @@ _COMMANDS = {
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
-    try:
-        return _COMMANDS[args.command](args)
-    except (CliError, ValueError, FileNotFoundError, OSError) as e:
-        print(f"python -m torchpf {args.command}: error: {e}", file=sys.stderr)
-        return 2
+    return run_command("python -m torchpf", args, _COMMANDS[args.command])
 
 
 if __name__ == "__main__":

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import tempfile
 from collections.abc import Sequence
 
@@ -32,10 +33,38 @@ import numpy as np
 
 #: Name of the optional first column (seconds).
 TIME_COLUMN = "time"
-
 # Characters a column name may not contain: the writer does no quoting, so that any CSV reader (and a
 # person with a text editor) sees exactly one name per comma-separated field.
 _FORBIDDEN_IN_NAMES = (",", '"', "\n", "\r")
+
+
+# A number as the file formats write it: ASCII digits, optional sign, point and exponent (or inf / nan, which
+# the callers refuse with their own "must be finite"). Python's float() also takes "1_000", Arabic-Indic
+# digits and Unicode spaces: a file holding those was not written by a number formatter.
+_PLAIN_NUMBER = re.compile(
+    r"[+-]?(?:(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?|inf|infinity|nan)", re.IGNORECASE
+)
+
+
+def plain_float(text: str) -> float:
+    """``float(text)`` for a plain ASCII decimal number (surrounding ASCII blanks allowed).
+
+    Raises ValueError for anything else that :func:`float` would accept: digit group underscores
+    (``1_000``), non-ASCII digits (Arabic-Indic ``١٢``), Unicode spaces. ``inf``/``nan`` pass (callers check
+    finiteness with their own message).
+    """
+    stripped = text.strip(" \t\r\n")
+    if not _PLAIN_NUMBER.fullmatch(stripped):
+        raise ValueError(f"not a plain decimal number: {text!r}")
+    return float(stripped)
+
+
+def plain_int(text: str) -> int:
+    """``int(text)`` for plain ASCII digits with an optional sign (no ``1_000``, no non-ASCII digits)."""
+    stripped = text.strip(" \t\r\n")
+    if not re.fullmatch(r"[+-]?[0-9]+", stripped):
+        raise ValueError(f"not a plain integer: {text!r}")
+    return int(stripped)
 
 
 class MocapFormatError(ValueError):
@@ -334,7 +363,8 @@ def read_mocap_csv(
     Raises:
         MocapFormatError: empty file, empty/duplicate/misplaced column names, columns that differ from
             ``expected_dof_names`` (unknown or missing), a row with the wrong number of fields, a field that
-            is not a number or is NaN/inf, times not strictly increasing. The message names file, line and
+            is not a plain decimal number (:func:`plain_float`) or is NaN/inf, times not strictly
+            increasing. The message names file, line and
             column.
         FileNotFoundError: no such file.
     """
@@ -425,7 +455,7 @@ def read_mocap_csv(
         if np.any(steps <= 0):
             r = int(np.argmax(steps <= 0)) + 1
             raise MocapFormatError(
-                f"times must be strictly increasing ({times[r - 1]!r} then {times[r]!r})",
+                f"times must be strictly increasing ({float(times[r - 1])!r} then {float(times[r])!r})",
                 path=path,
                 line=r + 2,
                 column=_column_label(0, TIME_COLUMN),
@@ -442,23 +472,123 @@ def parse_float_table(
     ``lines`` is the file line of the first row (rows on consecutive lines) or the line of every row; the
     :class:`MocapFormatError` for a field that is not a number names that line and the column.
     """
-    try:
-        flat = np.array(tokens, dtype=np.float64)
-    except ValueError:
-        # Slow path only to locate the culprit for the message.
+
+    def first_bad() -> MocapFormatError | None:
         for i, tok in enumerate(tokens):
             try:
-                float(tok)
+                plain_float(tok)
             except ValueError:
+                try:
+                    float(tok)
+                    what = "not a plain decimal number"  # "1_000", Arabic-Indic digits: float() takes them
+                except ValueError:
+                    what = "not a number"
                 r, c = divmod(i, n_cols)
-                raise MocapFormatError(
-                    f"not a number: {tok.strip()!r}",
+                return MocapFormatError(
+                    f"{what}: {tok.strip()!r}",
                     path=path,
                     line=r + lines if isinstance(lines, int) else lines[r],
                     column=_column_label(c, header[c]),
-                ) from None
-        raise  # numpy rejected something Python accepts: let its message through
+                )
+        return None
+
+    joined = "".join(tokens)
+    if "_" in joined or not joined.isascii():  # cheap screen before the per-field check
+        error = first_bad()
+        if error is not None:
+            raise error
+    try:
+        flat = np.array(tokens, dtype=np.float64)
+    except ValueError:
+        error = first_bad()  # slow path only to locate the culprit for the message
+        if error is not None:
+            raise error from None
+        raise  # numpy rejected something plain_float accepts: let its message through
     return flat.reshape(-1, n_cols)
+
+
+# Deflate expands at most ~1032:1; a member claiming more than this ratio has a forged size field.
+_MAX_DEFLATE_RATIO = 1100
+
+
+def _npz_member(zf, info, path: str) -> np.ndarray:
+    """One ``.npy`` member of an open zip, its declared size checked against the bytes the zip holds
+    before anything is allocated (a mutated header can claim a shape of hundreds of GiB)."""
+    import zipfile
+
+    if info.compress_type not in (zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED):
+        raise ValueError(
+            f"member {info.filename!r}: compression method {info.compress_type} is not supported"
+        )
+    limit = (
+        info.compress_size
+        if info.compress_type == zipfile.ZIP_STORED
+        else (info.compress_size * _MAX_DEFLATE_RATIO + 1024)
+    )
+    if info.file_size > limit:
+        raise ValueError(f"member {info.filename!r}: size field {info.file_size} is corrupt")
+    with zf.open(info) as f:
+        version = np.lib.format.read_magic(f)
+        if version == (1, 0):
+            shape, fortran, dtype = np.lib.format.read_array_header_1_0(f)
+        elif version == (2, 0):
+            shape, fortran, dtype = np.lib.format.read_array_header_2_0(f)
+        else:
+            raise ValueError(f"member {info.filename!r}: .npy format version {version} is not supported")
+        if dtype.hasobject:
+            raise ValueError(f"member {info.filename!r}: object arrays are not read (no unpickling)")
+        nbytes = math.prod(shape) * dtype.itemsize  # Python ints: no overflow
+        if nbytes > info.file_size:
+            raise ValueError(
+                f"member {info.filename!r} declares shape {shape} of {dtype} ({nbytes} bytes) but holds "
+                f"{info.file_size} bytes"
+            )
+    with zf.open(info) as f:
+        return np.lib.format.read_array(f, allow_pickle=False)
+
+
+def read_npz(
+    path: str | os.PathLike, what: str, error: type[Exception] = ValueError
+) -> dict[str, np.ndarray]:
+    """The arrays of a ``.npz`` file, read defensively (untrusted input).
+
+    Every failure raises ``error`` with a message that starts with the path (not a zip, a corrupt or
+    unsupported member, an object array, a member whose declared shape needs more bytes than the file
+    holds: checked before allocating, so memory stays bounded by the file's own size); a missing file
+    raises ``FileNotFoundError`` naming it. Nothing is unpickled. ``what`` names the kind of file
+    (``"keypoints"``).
+    """
+    import tokenize
+    import zipfile
+    import zlib
+
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"{what.replace('-', ' ')} file not found: {path}")
+    try:
+        with zipfile.ZipFile(path) as zf:
+            return {
+                info.filename[: -len(".npy")]: _npz_member(zf, info, path)
+                for info in zf.infolist()
+                if info.filename.endswith(".npy")
+            }
+    except (
+        zipfile.BadZipFile,
+        zlib.error,
+        ValueError,
+        EOFError,
+        OSError,
+        KeyError,
+        NotImplementedError,
+        tokenize.TokenError,
+        SyntaxError,
+        MemoryError,
+        RecursionError,
+        OverflowError,
+        TypeError,
+    ) as e:
+        reason = " ".join(str(e).split())[:200]
+        raise error(f"{path}: not a readable {what} .npz file ({type(e).__name__}: {reason})") from None
 
 
 def read_versioned_npz(
@@ -472,33 +602,25 @@ def read_versioned_npz(
 
     ``fmt`` is the format name the metadata must carry (``"metadata": {"format": fmt, "version": v, ...}``),
     ``max_version`` the newest version this code reads, ``what`` the kind of file for messages (``"action
-    model"``). Every failure raises ``error`` with a message that starts with the path: not a readable zip,
-    no or invalid metadata, another format, a version that is not a positive int or newer than
-    ``max_version``; a missing file raises ``FileNotFoundError`` naming it. Nothing is unpickled
-    (``allow_pickle=False``).
+    model"``). Every failure raises ``error`` with a message that starts with the path: not a readable zip
+    (:func:`read_npz`), no or invalid metadata, another format, a version that is not a positive int or
+    newer than ``max_version``; a missing file raises ``FileNotFoundError`` naming it. Nothing is
+    unpickled.
     """
     import json
-    import zipfile
-    import zlib
 
     path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise FileNotFoundError(f"{what.replace('-', ' ')} file not found: {path}")
 
     def bad(reason: str) -> Exception:
         return error(f"{path}: {reason}")
 
-    try:
-        with np.load(path, allow_pickle=False) as npz:
-            data = {key: npz[key] for key in npz.files}
-    except (zipfile.BadZipFile, zlib.error, ValueError, EOFError, OSError, KeyError) as e:
-        raise bad(f"not a readable {what} .npz file ({type(e).__name__}: {e})") from None
+    data = read_npz(path, what, error)
     article = "an" if what[:1].lower() in "aeiou" else "a"
     if "metadata" not in data:
         raise bad(f"not {article} {what} file (no 'metadata' entry)")
     try:
         meta = json.loads(str(data["metadata"]))
-    except (ValueError, TypeError) as e:
+    except (ValueError, TypeError, RecursionError) as e:
         raise bad(f"metadata is not valid JSON ({e})") from None
     if not isinstance(meta, dict) or meta.get("format") != fmt:
         raise bad(f"not {article} {what} file (metadata format is not {fmt!r})")

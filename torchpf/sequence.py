@@ -37,7 +37,7 @@ import numpy as np
 import torch
 
 from torchpf.camera import Camera, CameraRig, load_cameras, save_cameras
-from torchpf.io import read_mocap_csv, write_atomic, write_mocap_csv
+from torchpf.io import read_mocap_csv, read_npz, write_atomic, write_mocap_csv
 from torchpf.observations import Frame, Keypoints2D, PointCloud, Silhouettes, binary_mask
 
 __all__ = [
@@ -125,6 +125,19 @@ class SequenceData:
             or (wanted("points") and any_in(self.points))
             or (wanted("keypoints") and kp)
         )
+
+    def truth_in(self, dof_names) -> torch.Tensor | None:
+        """The ground truth (T, D) with its columns in ``dof_names`` order (a skeleton's; truth.csv may
+        list them in any order), or None; a ValueError when the columns are not the same set of DOFs."""
+        if self.truth is None or self.dof_names is None or list(self.dof_names) == list(dof_names):
+            return self.truth
+        have, want = list(self.dof_names), list(dof_names)
+        if sorted(have) != sorted(want):
+            extra, missing = sorted(set(have) - set(want)), sorted(set(want) - set(have))
+            raise ValueError(
+                f"truth.csv columns do not match the skeleton: unknown {extra}, missing {missing}"
+            )
+        return self.truth[:, [have.index(n) for n in want]]
 
     def frame(self, t: int) -> Frame:
         """The observations of frame ``t`` as a :class:`~torchpf.observations.Frame` (read from disk for a
@@ -405,27 +418,12 @@ def _read_points(path: str) -> np.ndarray:
 
 def _read_keypoints(path: str, names: list[str]) -> tuple[np.ndarray, list[str]]:
     """uv (T, V, J, 2) float32 in the order of ``names`` (NaN = missing) and the joint names."""
-    import zipfile
-    import zlib
-
-    try:
-        with zipfile.ZipFile(path) as z:
-            members = {os.path.splitext(i.filename)[0]: i for i in z.infolist()}
-            if "uv" not in members:
-                raise SequenceError(f"{path}: no 'uv' array")
-            for key, info in members.items():
-                with z.open(info) as f:
-                    shape, dtype = _read_npy_header(f, f"{path}: entry {key!r}")
-                if math.prod(shape) * dtype.itemsize > info.file_size:
-                    raise SequenceError(f"{path}: entry {key!r} says {shape} {dtype}, more than it holds")
-        with np.load(path, allow_pickle=False) as z:
-            uv = np.asarray(z["uv"])
-            joints = [str(j) for j in z["joints"]] if "joints" in z.files else []
-            cams = [str(c) for c in z["cameras"]] if "cameras" in z.files else None
-    except SequenceError:
-        raise
-    except (zipfile.BadZipFile, zlib.error, KeyError, RuntimeError, *_NPY_ERRORS) as e:
-        raise SequenceError(f"{path}: not a readable keypoints .npz ({type(e).__name__}: {e})") from None
+    z = read_npz(path, "keypoints", SequenceError)  # sizes checked before allocating, nothing unpickled
+    if "uv" not in z:
+        raise SequenceError(f"{path}: no 'uv' array")
+    uv = np.asarray(z["uv"])
+    joints = [str(j) for j in z["joints"].reshape(-1)] if "joints" in z else []
+    cams = [str(c) for c in z["cameras"].reshape(-1)] if "cameras" in z else None
     if uv.dtype.kind not in "fiu" or uv.ndim != 4 or uv.shape[-1] != 2:
         raise SequenceError(
             f"{path}: 'uv' must be a (T, V, J, 2) array of numbers, got {uv.shape} {uv.dtype}"

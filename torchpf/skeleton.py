@@ -22,7 +22,7 @@ of ``q`` m along (prismatic) the joint axis.
 
 Capsule geometry (Hauberg §5): one capsule per bone (parent body joint -> child body joint) whose radius is
 read from the URDF ``<collision>``/``<visual>`` cylinder or capsule of the parent link (``name`` = child),
-else from a radii table, else ``0.15 x`` bone length.
+else from a radii table, else ``0.15 x`` bone length (0.01 m for a bone of zero rest length).
 
 Example::
 
@@ -34,6 +34,7 @@ Example::
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Mapping, Sequence
 
@@ -157,6 +158,9 @@ class Skeleton(nn.Module):
         super().__init__()
         self.chain = chain
         self.source = source
+        bad = {k: v for k, v in (radii or {}).items() if not (math.isfinite(float(v)) and float(v) > 0)}
+        if bad:
+            raise ValueError(f"{source}: capsule radii must be finite and > 0, got {bad}")
         self.urdf_xml = urdf_xml  # what with_body / save_urdf rewrite
         geometry = link_geometry(parse_urdf_xml(urdf_xml, source))
         frames = flatten_chain(chain)
@@ -340,7 +344,8 @@ class Skeleton(nn.Module):
                     if n_bones == 1 and len(unnamed) == 1:
                         radius = unnamed[0]
             if radius is None:
-                radius = 0.15 * length
+                # a bone of zero rest length (a prismatic one) still needs a positive radius: URDF refuses 0
+                radius = 0.15 * length if length > 1e-9 else 0.01
             bones.append((p, c))
             r.append(float(radius))
         self.bones: list[tuple[int, int]] = bones
@@ -415,7 +420,7 @@ class Skeleton(nn.Module):
         loc = torch.cat(local, 0) if len(local) > 1 else local[0]
         if c["reorder"] is not None:
             loc = loc.index_select(0, c["reorder"])
-        loc = loc.view(-1, 3, 4, B)
+        loc = loc.view(loc.shape[0], 3, 4, B)  # explicit sizes: B may be 0 (an empty batch)
         world = []
         col3 = c["col3"]
         for start, end, parent_rows in c["levels"]:
@@ -437,7 +442,7 @@ class Skeleton(nn.Module):
         for g, v in run_axes:
             P = ext.index_select(0, c[f"par{g}"])  # (n, 3, 4, B)
             n, m = v.shape[0], len(self._groups[g])
-            v = v.view(n, -1, 3, B)  # (n, m or 2m, 3, B)
+            v = v.view(n, v.shape[1] // 3, 3, B)  # (n, m or 2m, 3, B)
             w = P[:, None, :, 0] * v[:, :, 0:1]
             w = torch.addcmul(w, P[:, None, :, 1], v[:, :, 1:2])
             w = torch.addcmul(w, P[:, None, :, 2], v[:, :, 2:3])
@@ -577,8 +582,8 @@ class Skeleton(nn.Module):
                 l_joint = torch.as_tensor(lengths, dtype=torch.float64).reshape(-1)
                 if l_joint.shape != (len(self.joint_names),):
                     raise ValueError(f"with_body: lengths must have shape ({len(self.joint_names)},)")
-        if not scale > 0 or not bool((l_joint > 0).all()) or not bool((r >= 0).all()):
-            raise ValueError("with_body: scale and lengths must be > 0, radii >= 0")
+        if not scale > 0 or not bool((l_joint > 0).all()) or not bool((r > 0).all()):
+            raise ValueError("with_body: scale, lengths and radii must be > 0")
         root = parse_urdf_xml(self.urdf_xml, self.source)
         joint_above = {j.find("child").get("link"): j.get("name") for j in root.iter("joint")}
         frames = flatten_chain(self.chain)

@@ -465,11 +465,7 @@ class Tracker(nn.Module):
                 raise ValueError(f"{where}: no observations to track (no {what})")
             frames = _Frames(len(sequence), sequence.frame)
             if init is None and sequence.truth is not None:
-                if sequence.dof_names is not None and list(sequence.dof_names) != list(
-                    self.skeleton.dof_names
-                ):
-                    raise ValueError("the sequence's truth.csv columns do not match the skeleton's DOF names")
-                init = sequence.truth[0]
+                init = sequence.truth_in(self.skeleton.dof_names)[0]
             if fps is None and sequence.times is not None and len(sequence.times) > 1:
                 fps = 1.0 / float(sequence.times[1] - sequence.times[0])
         else:

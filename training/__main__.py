@@ -15,8 +15,9 @@ tracks in the skeleton's ``dof_names`` order (see :mod:`training.mocap`). ``fit`
 (:mod:`training.plots`). ``fit-dynamics`` learns per-DOF step stds and the constant-velocity α
 (:mod:`training.dynamics`) for ``python -m torchpf track --dynamics dyn.npz``. ``export`` writes a track (or
 any mocap CSV of the skeleton) as BVH for Blender / MotionBuilder (:func:`training.mocap.save_bvh`). Bad
-input ends with a one-line ``error:`` message on stderr and exit status 2. Each command is one subparser with
-its own ``--help``; more commands plug in the same way through :func:`build_parser`.
+input ends with a one-line ``error:`` message on stderr and exit status 2, Ctrl-C with ``interrupted`` and
+status 130; every command takes ``--threads N`` and ``--debug`` (:mod:`torchpf.cli`). Each command is one
+subparser with its own ``--help``; more commands plug in the same way through :func:`build_parser`.
 """
 
 from __future__ import annotations
@@ -25,6 +26,8 @@ import argparse
 import math
 import sys
 from pathlib import Path
+
+from torchpf.cli import add_runtime_options, check_output_dir, check_output_file, run_command
 
 PROG = "python -m training"
 
@@ -42,12 +45,12 @@ def _positive_float(text: str) -> float:
 def _convert(args: argparse.Namespace) -> int:
     # Imported here so that `--help` answers without loading torch.
     from torchpf.io import write_text_atomic
-    from torchpf.skeleton import Skeleton
-    from training.mocap import bvh_motion, bvh_to_urdf, read_bvh, save_csv
+    from training.mocap import bvh_motion, bvh_to_urdf, read_bvh, save_csv, skeleton_from_urdf
 
+    check_output_dir(args.out_dir, "--out-dir")
     bvh = read_bvh(args.file)
     urdf = bvh_to_urdf(bvh, args.scale)
-    skel = Skeleton.from_urdf(urdf)
+    skel = skeleton_from_urdf(bvh, urdf)
     motion = bvh_motion(bvh, args.scale, dof_names=skel.dof_names)
     out = Path(args.out_dir)
     urdf_path, csv_path = out / "skeleton.urdf", out / f"{Path(args.file).stem}.csv"
@@ -83,6 +86,7 @@ def _fit(args: argparse.Namespace) -> int:
 
     if args.out.suffix != ".npz":
         raise ValueError(f"--out must name a .npz file, got {str(args.out)!r}")
+    check_output_file(args.out)
     skeleton = Skeleton.from_urdf(args.skeleton) if args.skeleton else None
     dof_names = skeleton.dof_names if skeleton is not None else None
     motions = []
@@ -132,6 +136,7 @@ def _inspect(args: argparse.Namespace) -> int:
     from priors.action import ActionModel
     from training.plots import describe, plot_explained_variance, plot_synchronisation
 
+    check_output_dir(args.out)
     model = ActionModel.load(args.model)
     print(describe(model))
     paths = [
@@ -151,6 +156,7 @@ def _fit_dynamics(args: argparse.Namespace) -> int:
         raise ValueError(f"--out must name a .npz file, got {str(args.out)!r}")
     if args.skip_first < 0:
         raise ValueError(f"--skip-first must be >= 0, got {args.skip_first}")
+    check_output_file(args.out)
     skeleton = Skeleton.from_urdf(args.skeleton)
     stats = learn_from_files(args.files, skeleton, fps=args.fps, alpha=args.alpha, skip_first=args.skip_first)
     stats.save(args.out)
@@ -198,6 +204,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="metres per file unit (CMU clips: 0.056444; default 1)",
     )
     convert.add_argument("--out-dir", required=True, metavar="DIR", help="output folder (created if missing)")
+    add_runtime_options(convert)
     convert.set_defaults(func=_convert)
 
     fit = commands.add_parser(
@@ -260,6 +267,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="also measure, for each performance, how often a model fitted without it accepts its frames",
     )
     fit.add_argument("--quiet", action="store_true", help="no progress bars")
+    add_runtime_options(fit)
     fit.set_defaults(func=_fit)
 
     inspect = commands.add_parser(
@@ -272,6 +280,7 @@ def build_parser() -> argparse.ArgumentParser:
     inspect.add_argument("model", metavar="MODEL.npz", help="action model written by 'fit'")
     inspect.add_argument("--out", required=True, metavar="DIR", help="folder for the PNG files")
     inspect.add_argument("--dims", type=int, default=4, help="aSpace dimensions to plot (4)")
+    add_runtime_options(inspect)
     inspect.set_defaults(func=_inspect)
 
     dyn = commands.add_parser(
@@ -295,6 +304,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="N",
         help="drop the first N frames of every file (CMU conversions: 1, a rest pose)",
     )
+    add_runtime_options(dyn)
     dyn.set_defaults(func=_fit_dynamics)
 
     export = commands.add_parser(
@@ -317,23 +327,17 @@ def build_parser() -> argparse.ArgumentParser:
     export.add_argument(
         "--euler-order", default="ZXY", help="channel order of re-decomposed joints (default ZXY)"
     )
+    add_runtime_options(export)
     export.set_defaults(func=_export)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Run the command line; returns the exit status (0 ok, 2 bad input)."""
+    """Run the command line; returns the exit status (0 ok, 2 bad input, 130 interrupted)."""
     parser = build_parser()
     args = parser.parse_args(argv)  # exits with status 2 and a usage line on malformed arguments
-    try:
-        return args.func(args)
-    except OSError as e:  # missing file, unwritable folder: "path: reason" rather than "[Errno 2] ..."
-        where = f"{e.filename}: " if e.filename is not None else ""
-        print(f"{PROG} {args.command}: error: {where}{e.strerror or e}", file=sys.stderr)
-    except ValueError as e:  # MocapFormatError included: its message names file, line and column
-        message = " ".join(str(e).split())  # one line, whatever the message
-        print(f"{PROG} {args.command}: error: {message}", file=sys.stderr)
-    return 2
+    # MocapFormatError's message names file, line and column; an OSError prints as "path: reason"
+    return run_command(PROG, args, args.func)
 
 
 if __name__ == "__main__":

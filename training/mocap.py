@@ -70,8 +70,22 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from torchpf.io import MocapFormatError, parse_float_table, read_mocap_csv, write_mocap_csv
-from torchpf.kinematics.urdf import ROOT_TRANSLATION_LIMIT, BodyJoint, Dof, build_urdf
+from torchpf.io import (
+    MocapFormatError,
+    parse_float_table,
+    plain_float,
+    plain_int,
+    read_mocap_csv,
+    write_mocap_csv,
+)
+from torchpf.kinematics.urdf import (
+    MAX_COORDINATE,
+    MAX_TREE_DEPTH,
+    ROOT_TRANSLATION_LIMIT,
+    BodyJoint,
+    Dof,
+    build_urdf,
+)
 from torchpf.skeleton import Skeleton
 
 #: Metres per file unit of the CMU BVH conversions (``load_bvh(path, scale=CMU_SCALE)``).
@@ -82,6 +96,10 @@ REVOLUTE_LIMIT = 2.0 * math.pi
 
 #: Default capsule radius: ``RADIUS_FRACTION x`` bone length, clipped to ``[RADIUS_MIN, RADIUS_MAX]`` m.
 RADIUS_FRACTION, RADIUS_MIN, RADIUS_MAX = 0.15, 0.01, 0.08
+
+#: Accepted ``Frame Time`` (s): a 1 MHz to one-frame-a-day clip; outside it, a corrupted header (1e-320 gives
+#: an infinite frame rate).
+MIN_FRAME_TIME, MAX_FRAME_TIME = 1e-6, 86400.0
 
 #: Relative tolerance on the spacing of a CSV time column (e.g. times rounded to 1e-5 s at 120 fps pass).
 TIME_RTOL = 1e-3
@@ -204,12 +222,22 @@ def load_csv(
         Motion with ``name`` = file stem; the time column's start is dropped (Motion times start at 0).
 
     Raises:
-        MocapFormatError: malformed file (see :func:`torchpf.io.read_mocap_csv`) or time steps that are not
-            uniform (within ``TIME_RTOL``), naming file, line and column.
+        MocapFormatError: malformed file (see :func:`torchpf.io.read_mocap_csv`), a value beyond
+            +-``MAX_COORDINATE`` (1e6 rad or m), or time steps that are not uniform (within ``TIME_RTOL``),
+            naming file, line and column.
         ValueError: no frame rate available, or ``fps`` disagrees with the time column.
     """
     path = os.fspath(path)
     names, times, values = read_mocap_csv(path, expected_dof_names=dof_names)
+    too_big = np.argwhere(~(np.abs(values) <= MAX_COORDINATE))
+    if len(too_big):  # a corrupted number: its square would overflow the fit's statistics
+        r, c = (int(v) for v in too_big[0])
+        raise MocapFormatError(
+            f"|value| must be at most {MAX_COORDINATE:g} rad or m, got {float(values[r, c])!r}",
+            path=path,
+            line=r + 2,
+            column=repr(names[c]),
+        )
     if times is not None and len(times) >= 2:
         steps = np.diff(times)
         dt = (times[-1] - times[0]) / (len(times) - 1)
@@ -217,7 +245,7 @@ def load_csv(
         if off.any():
             r = int(np.argmax(off)) + 1  # frame index of the row that ends the first bad step
             raise MocapFormatError(
-                f"time steps are not uniform: {steps[r - 1]!r} s here, {dt!r} s on average; "
+                f"time steps are not uniform: {float(steps[r - 1])!r} s here, {float(dt)!r} s on average; "
                 "resample, or drop the time column and pass fps",
                 path=path,
                 line=r + 2,
@@ -323,7 +351,7 @@ class _Tokens:
     def number(self, what: str) -> float:
         tok, ln = self.next(what)
         try:
-            value = float(tok)
+            value = plain_float(tok)
         except ValueError:
             raise self.error(f"{what}: not a number: {tok!r}", ln) from None
         if not math.isfinite(value):
@@ -332,9 +360,12 @@ class _Tokens:
 
 
 def _parse_hierarchy(tokens: _Tokens) -> list[dict]:
+    # An explicit stack of the open joints, not recursion: a file 1,200 joints deep must end in the
+    # MAX_TREE_DEPTH error, not a RecursionError.
     joints: list[dict] = []
+    stack: list[tuple[int, str, int]] = []  # (index in joints, label, line of its keyword)
 
-    def joint(parent: int, keyword_line: int, end_site: bool) -> None:
+    def open_joint(parent: int, keyword_line: int, end_site: bool) -> None:
         if end_site:
             name = None
             tokens.expect("{")
@@ -342,39 +373,46 @@ def _parse_hierarchy(tokens: _Tokens) -> list[dict]:
             name, ln = tokens.next("a joint name")
             if name in ("{", "}"):
                 raise tokens.error(f"missing joint name before {name!r}", ln)
-        me = {"name": name, "parent": parent, "offset": None, "channels": (), "end": end_site}
-        me["line"] = keyword_line
-        joints.append(me)
-        index = len(joints) - 1
+            if not name.isprintable():  # control characters cannot go into the URDF (XML) it becomes
+                raise tokens.error(f"joint name {name!r} holds control characters", ln)
         label = "End Site" if end_site else f"joint {name!r}"
+        if len(stack) >= MAX_TREE_DEPTH:
+            raise tokens.error(
+                f"{label}: the hierarchy is more than {MAX_TREE_DEPTH} joints deep", keyword_line
+            )
+        joints.append({"name": name, "parent": parent, "offset": None, "channels": (), "end": end_site})
+        joints[-1]["line"] = keyword_line
         if not end_site:
             tokens.expect("{")
-        while True:
-            tok, ln = tokens.next(f"'}}' closing {label} (line {keyword_line})")
-            word = tok.upper()
-            if word == "OFFSET":
-                if me["offset"] is not None:
-                    raise tokens.error(f"{label}: second OFFSET", ln)
-                me["offset"] = tuple(tokens.number(f"{label}: OFFSET {a}") for a in "xyz")
-            elif word == "CHANNELS" and not end_site:
-                if me["channels"]:
-                    raise tokens.error(f"{label}: second CHANNELS", ln)
-                me["channels"] = _parse_channels(tokens, label, ln)
-            elif word == "JOINT" and not end_site:
-                joint(index, ln, end_site=False)
-            elif word == "END" and not end_site:
-                tokens.expect("Site")
-                joint(index, ln, end_site=True)
-            elif tok == "}":
-                break
-            else:
-                raise tokens.error(f"{label}: unexpected {tok!r}", ln)
-        if me["offset"] is None:
-            raise tokens.error(f"{label} has no OFFSET", keyword_line)
+        stack.append((len(joints) - 1, label, keyword_line))
 
     tokens.expect("HIERARCHY")
-    ln = tokens.expect("ROOT")
-    joint(-1, ln, end_site=False)
+    open_joint(-1, tokens.expect("ROOT"), end_site=False)
+    while stack:
+        index, label, keyword_line = stack[-1]
+        me = joints[index]
+        end_site = me["end"]
+        tok, ln = tokens.next(f"'}}' closing {label} (line {keyword_line})")
+        word = tok.upper()
+        if word == "OFFSET":
+            if me["offset"] is not None:
+                raise tokens.error(f"{label}: second OFFSET", ln)
+            me["offset"] = tuple(tokens.number(f"{label}: OFFSET {a}") for a in "xyz")
+        elif word == "CHANNELS" and not end_site:
+            if me["channels"]:
+                raise tokens.error(f"{label}: second CHANNELS", ln)
+            me["channels"] = _parse_channels(tokens, label, ln)
+        elif word == "JOINT" and not end_site:
+            open_joint(index, ln, end_site=False)
+        elif word == "END" and not end_site:
+            tokens.expect("Site")
+            open_joint(index, ln, end_site=True)
+        elif tok == "}":
+            if me["offset"] is None:
+                raise tokens.error(f"{label} has no OFFSET", keyword_line)
+            stack.pop()
+        else:
+            raise tokens.error(f"{label}: unexpected {tok!r}", ln)
     extra = tokens.peek()
     if extra is not None:
         what = "a second ROOT (several skeletons in one file are not supported)"
@@ -387,7 +425,7 @@ def _parse_hierarchy(tokens: _Tokens) -> list[dict]:
 def _parse_channels(tokens: _Tokens, label: str, line: int) -> tuple[str, ...]:
     tok, ln = tokens.next("the number of channels")
     try:
-        n = int(tok)
+        n = plain_int(tok)
     except ValueError:
         raise tokens.error(f"{label}: CHANNELS count must be an integer, got {tok!r}", ln) from None
     if n < 0:
@@ -474,7 +512,7 @@ def read_bvh(path: str | os.PathLike) -> BvhData:
         header.append((ln, m.group(1)))
     (frames_ln, frames_tok), (ft_ln, ft_tok) = header
     try:
-        n_frames = int(frames_tok)
+        n_frames = plain_int(frames_tok)
     except ValueError:
         n_frames = -1
     if n_frames < 0:
@@ -482,11 +520,16 @@ def read_bvh(path: str | os.PathLike) -> BvhData:
             f"Frames must be an integer >= 0, got {frames_tok!r}", path=path, line=frames_ln
         )
     try:
-        frame_time = float(ft_tok)
+        frame_time = plain_float(ft_tok)
     except ValueError:
         frame_time = float("nan")
-    if not (math.isfinite(frame_time) and frame_time > 0):
-        raise MocapFormatError(f"Frame Time must be a number > 0, got {ft_tok!r}", path=path, line=ft_ln)
+    if not (math.isfinite(frame_time) and MIN_FRAME_TIME <= frame_time <= MAX_FRAME_TIME):
+        raise MocapFormatError(
+            f"Frame Time must be a number of seconds in [{MIN_FRAME_TIME:g}, {MAX_FRAME_TIME:g}], "
+            f"got {ft_tok!r}",
+            path=path,
+            line=ft_ln,
+        )
 
     data_lines = rest[2:]
     if len(data_lines) < n_frames:
@@ -588,6 +631,13 @@ def bvh_to_urdf(
     for j in bvh.joints:
         raw = np.asarray(j.offset, dtype=np.float64) - (_root_shift(bvh) if j.parent < 0 else 0.0)
         offset = tuple(float(v) for v in scale * (Y_UP_TO_Z_UP @ raw))
+        if not max(abs(v) for v in offset) <= MAX_COORDINATE:
+            raise MocapFormatError(
+                f"joint {j.name!r}: OFFSET {max(abs(v) for v in offset):g} m at scale {scale:g}, more than "
+                f"{MAX_COORDINATE:g} m (a corrupted number?)",
+                path=bvh.path,
+                line=j.line,
+            )
         dofs = []
         for c in _dof_order(j):
             kind, axis_index = _CHANNELS[c.lower()]
@@ -623,6 +673,8 @@ def bvh_motion(
         Motion with ``fps = 1 / Frame Time`` and ``name`` = file stem; ``angles`` (T, D).
     """
     bvh, scale = _as_bvh(bvh), _check_scale(scale)
+    if bvh.n_frames == 0:
+        raise MocapFormatError("'Frames: 0': the file has no motion to convert", path=bvh.path)
     names = bvh.channel_names
     kinds = [_CHANNELS[c.lower()][0] for j in bvh.joints for c in j.channels]
     # The conjugation by C leaves the values untouched (see the module docstring): one factor per column.
@@ -634,6 +686,15 @@ def bvh_motion(
         if kind == "position":
             shift[k] = scale * root_shift[axis]
     angles = bvh.values * factor + shift  # (T, K), all frames at once
+    too_big = np.argwhere(~(np.abs(angles) <= MAX_COORDINATE))
+    if len(too_big):
+        r, c = (int(v) for v in too_big[0])
+        raise MocapFormatError(
+            f"frame {r + 1}: {bvh.values[r, c]:g} is {abs(float(angles[r, c])):g} rad or m, more than "
+            f"{MAX_COORDINATE:g} (a corrupted number?)",
+            path=bvh.path,
+            column=f"{c + 1} ({names[c]!r})",
+        )
     if dof_names is not None:
         index = {n: i for i, n in enumerate(names)}
         if sorted(dof_names) != sorted(names):
@@ -644,6 +705,16 @@ def bvh_motion(
         angles = angles[:, [index[n] for n in dof_names]]
         names = list(dof_names)
     return Motion(names, bvh.fps, torch.from_numpy(np.ascontiguousarray(angles)), name=Path(bvh.path).stem)
+
+
+def skeleton_from_urdf(bvh: BvhData, urdf: str) -> Skeleton:
+    """:meth:`Skeleton.from_urdf` of :func:`bvh_to_urdf`'s text; an error names the BVH file, not the URDF
+    string (e.g. a joint name the URDF cannot carry)."""
+    try:
+        return Skeleton.from_urdf(urdf)
+    except ValueError as e:
+        reason = " ".join(str(e).split())
+        raise MocapFormatError(f"the converted skeleton is invalid ({reason})", path=bvh.path) from None
 
 
 def load_bvh(
@@ -669,7 +740,7 @@ def load_bvh(
         MocapFormatError: malformed file, naming file, line and column.
     """
     bvh = read_bvh(path)
-    skel = Skeleton.from_urdf(bvh_to_urdf(bvh, scale, radii=radii))
+    skel = skeleton_from_urdf(bvh, bvh_to_urdf(bvh, scale, radii=radii))
     return skel, bvh_motion(bvh, scale, dof_names=skel.dof_names)
 
 

@@ -319,7 +319,7 @@ def _error(tmp_path, text) -> MocapFormatError:
     path = tmp_path / "bad.bvh"
     path.write_bytes(text.encode())
     with pytest.raises(MocapFormatError) as info:
-        load_bvh(path)
+        load_bvh(path, scale=CMU_SCALE)
     assert str(path) in str(info.value)
     return info.value
 
@@ -339,15 +339,40 @@ def _error(tmp_path, text) -> MocapFormatError:
         ),
         (GOOD.replace("OFFSET 0 1 0", "OFFSET 0 one 0"), 8, "not a number: 'one'"),
         (GOOD.replace("JOINT Chest", "JOINT Hips"), 6, "duplicate joint name"),
-        (GOOD.replace("Frame Time: 0.01", "Frame Time: 0"), 18, "Frame Time must be a number > 0"),
+        (GOOD.replace("Frame Time: 0.01", "Frame Time: 0"), 18, "Frame Time must be a number of seconds in"),
         (GOOD.split("MOTION")[0], 15, "no MOTION"),
         (GOOD.replace("Frame Time: 0.01\n", ""), 18, "expected 'Frame Time"),
+        (GOOD.replace("Frame Time: 0.01", "Frame Time: 1e-320"), 18, "Frame Time must be a number of"),
+        (GOOD.replace("OFFSET 0 1 0", "OFFSET 0 1_000 0"), 8, "not a number: '1_000'"),
+        (GOOD.replace("OFFSET 0 1 0", "OFFSET 0 \u0661 0"), 8, "not a number"),
+        (GOOD.replace("Frames: 2", "Frames: 0_2"), 17, "Frames must be an integer"),
+        (GOOD.replace("OFFSET 0 1 0", "OFFSET 0 1e200 0"), 6, "OFFSET 5.6444e+198 m at scale 0.056444"),
+        (GOOD.replace("4.0 5.0 6.0 7.0\n", "4.0 5.0 6.0 7.0e300\n", 1), None, "frame 1: 7e+300 is"),
+        (GOOD.replace("4.0 5.0 6.0 7.0\n", "4.0 5.0 6.0 \u0667\n", 1), 19, "not a plain decimal number"),
     ],
 )
 def test_bvh_errors_name_file_and_line(tmp_path, text, line, words):
     err = _error(tmp_path, text)
     assert err.line == line, str(err)
     assert words in str(err)
+
+
+def test_deep_hierarchy_is_a_clear_error(tmp_path):
+    depth = 1200
+    lines = ["HIERARCHY", "ROOT J0", "{", "OFFSET 0 0 0", "CHANNELS 1 Xrotation"]
+    for k in range(1, depth):
+        lines += [f"JOINT J{k}", "{", "OFFSET 0 1 0", "CHANNELS 1 Xrotation"]
+    lines += ["}"] * depth + ["MOTION", "Frames: 1", "Frame Time: 0.01", " ".join(["0"] * depth)]
+    err = _error(tmp_path, "\n".join(lines) + "\n")
+    assert "more than 256 joints deep" in str(err) and err.line == 2 + 4 * 256  # JOINT J256
+
+
+def test_zero_frames_read_but_do_not_convert(tmp_path):
+    path = tmp_path / "empty.bvh"
+    path.write_text(_bvh(TWO_BONES, []))
+    assert read_bvh(path).n_frames == 0
+    with pytest.raises(MocapFormatError, match="empty.bvh: 'Frames: 0': the file has no motion"):
+        load_bvh(path)
 
 
 @pytest.mark.parametrize("bad", ["nan", "inf", "1e999", "x"])
@@ -383,3 +408,8 @@ def test_motion_validation_and_helpers():
         Motion(["a", "a"], 50, torch.zeros(3, 2))
     with pytest.raises(ValueError, match="fps"):
         Motion(["a"], 0, torch.zeros(3, 1))
+
+
+def test_control_characters_in_joint_names_name_the_file(tmp_path):
+    err = _error(tmp_path, GOOD.replace("JOINT Chest", "JOINT Chest\x12"))
+    assert "holds control characters" in str(err) and err.line == 6

@@ -189,3 +189,34 @@ def test_load_csv_against_skeleton_dofs(tmp_path):
     assert m.dof_names == ["a", "b"] and m.angles.tolist() == [[1.0, 2.0], [3.0, 4.0]]
     with pytest.raises(MocapFormatError, match=r"unknown column\(s\) \['b'\]"):
         load_csv(path, dof_names=["a", "c"])
+
+
+@pytest.mark.parametrize(
+    ("field", "words"),
+    [("1_000", "not a plain decimal number: '1_000'"), ("\u0661\u0662", "not a plain decimal number")],
+)
+def test_csv_refuses_numbers_a_formatter_does_not_write(tmp_path, field, words):
+    path = tmp_path / "m.csv"
+    path.write_text(f"time,a,b\n0.0,1.0,2.0\n0.1,{field},2.0\n", encoding="utf-8")
+    with pytest.raises(MocapFormatError, match=words) as info:
+        read_mocap_csv(path)
+    assert (info.value.line, info.value.column) == (3, "2 ('a')")
+
+
+def test_csv_errors_print_plain_numbers(tmp_path):
+    path = tmp_path / "m.csv"
+    path.write_text("time,a\n0.0,1.0\n0.0333,1.0\n0.1,1.0\n")
+    with pytest.raises(MocapFormatError) as info:
+        load_csv(path)
+    assert "np.float64" not in str(info.value) and "0.0333" in str(info.value)
+    path.write_text("time,a\n0.0,1.0\n0.0,1.0\n")
+    with pytest.raises(MocapFormatError, match=r"\(0.0 then 0.0\)"):
+        read_mocap_csv(path)
+
+
+def test_load_csv_refuses_absurd_values(tmp_path):
+    path = tmp_path / "m.csv"
+    path.write_text("time,a,b\n0.0,1.0,2.0\n0.1,1.0,1e300\n")
+    with pytest.raises(MocapFormatError, match="at most 1e\\+06 rad or m, got 1e\\+300") as info:
+        load_csv(path)
+    assert info.value.line == 3 and "m.csv" in str(info.value)

@@ -316,8 +316,11 @@ def read_urdf_text(path_or_xml: str | os.PathLike) -> tuple[str, str]:
     path = os.fspath(path_or_xml)
     if not os.path.isfile(path):
         raise FileNotFoundError(f"URDF file not found: {path}")
-    with open(path, encoding="utf-8") as f:
-        return f.read(), path
+    try:
+        with open(path, encoding="utf-8") as f:
+            return f.read(), path
+    except UnicodeDecodeError as e:
+        raise ValueError(f"{path}: not a UTF-8 URDF file ({e.reason} at byte {e.start})") from None
 
 
 def parse_urdf_xml(xml: str, source: str) -> ET.Element:
@@ -328,14 +331,156 @@ def parse_urdf_xml(xml: str, source: str) -> ET.Element:
         raise ValueError(f"{source}: invalid URDF XML ({e})") from None
 
 
+#: Largest |coordinate| (m) of a URDF origin, limit or geometry size: beyond it the float32 parse of
+#: pytorch-kinematics and the FK products overflow or lose every digit of a human-sized body.
+MAX_COORDINATE = 1e6
+
+#: Deepest kinematic tree read: pytorch-kinematics builds (and this module flattens) the chain recursively.
+MAX_TREE_DEPTH = 256
+
+_MOVABLE = ("revolute", "continuous", "prismatic")
+
+
+def _numbers(
+    el: ET.Element, attr: str, n: int, where: str, default: str | None = None, bound: float = MAX_COORDINATE
+) -> list[float]:
+    """The ``n`` finite numbers (``|v| <= bound``) of attribute ``attr`` of ``el``; a ValueError naming
+    ``where`` otherwise."""
+    from torchpf.io import plain_float
+
+    text = el.get(attr, default)
+    if text is None:
+        raise ValueError(f"{where}: <{el.tag}> has no {attr!r}")
+    try:
+        values = [plain_float(v) for v in text.split()]
+    except ValueError:
+        raise ValueError(f"{where}: <{el.tag} {attr}={text!r}>: not {n} number(s)") from None
+    if len(values) != n:
+        raise ValueError(f"{where}: <{el.tag} {attr}={text!r}>: expected {n} number(s), got {len(values)}")
+    if not all(math.isfinite(v) and abs(v) <= bound for v in values):
+        raise ValueError(
+            f"{where}: <{el.tag} {attr}={text!r}>: numbers must be finite and within +-{bound:g}"
+        )
+    return values
+
+
+def _check_origin(el: ET.Element, where: str) -> None:
+    origin = el.find("origin")
+    if origin is not None:
+        _numbers(origin, "xyz", 3, where, "0 0 0")
+        _numbers(origin, "rpy", 3, where, "0 0 0")
+
+
+def _check_geometry(link: ET.Element, where: str) -> None:
+    for el in [*link.findall("collision"), *link.findall("visual")]:
+        label = f"{where} <{el.tag}{' name=' + repr(el.get('name')) if el.get('name') else ''}>"
+        _check_origin(el, label)
+        geom = el.find("geometry")
+        for shape in [] if geom is None else list(geom):
+            sizes = {"sphere": ("radius",), "cylinder": ("radius", "length"), "capsule": ("radius", "length")}
+            keys = sizes.get(shape.tag, ("size",) if shape.tag == "box" else ())
+            for key in keys:
+                if shape.get(key) is None:
+                    continue
+                values = _numbers(shape, key, 3 if key == "size" else 1, label)
+                if not all(v > 0 if key != "length" else v >= 0 for v in values):
+                    raise ValueError(f"{label}: <{shape.tag} {key}={shape.get(key)!r}> must be > 0")
+
+
+def _by_name(root: ET.Element, tag: str, source: str) -> dict[str, ET.Element]:
+    """The ``<tag>`` children of ``root`` by name, in file order; every one named, no name twice."""
+    out: dict[str, ET.Element] = {}
+    for k, el in enumerate(root.findall(tag)):
+        name = el.get("name")
+        if not name:
+            raise ValueError(f"{source}: <{tag}> number {k + 1} has no name")
+        if name in out:
+            raise ValueError(f"{source}: duplicate {tag} name {name!r}")
+        out[name] = el
+    return out
+
+
+def validate_urdf(root: ET.Element, source: str) -> None:
+    """Refuse a URDF that would load as a different or broken skeleton; the ValueError names the element.
+
+    Checked: joint and link names present and unique; every joint's ``<parent link>`` and ``<child link>``
+    name a ``<link>`` of the file; no link is the child of two joints; one root (one link that is no joint's
+    child) from which every link is reached (a typo in a parent link would otherwise drop the subtree
+    silently), at most :data:`MAX_TREE_DEPTH` deep; origins, axes and geometry sizes finite numbers within
+    +-:data:`MAX_COORDINATE`; movable joints' axes non-zero; limits finite with ``lower <= upper``; radii
+    and box sizes > 0, lengths >= 0.
+    """
+    if root.tag != "robot":
+        raise ValueError(f"{source}: the root element is <{root.tag}>, expected <robot>")
+    links = _by_name(root, "link", source)
+    for name, link in links.items():
+        _check_geometry(link, f"{source}: link {name!r}")
+    if not links:
+        raise ValueError(f"{source}: no <link>")
+    parent_of: dict[str, str] = {}
+    children: dict[str, list[str]] = {n: [] for n in links}
+    for name, joint in _by_name(root, "joint", source).items():
+        where = f"{source}: joint {name!r}"
+        ends = {}
+        for end in ("parent", "child"):
+            el = joint.find(end)
+            ref = None if el is None else el.get("link")
+            if ref is None:
+                raise ValueError(f"{where}: no <{end} link=...>")
+            if ref not in links:
+                raise ValueError(f"{where}: {end} link {ref!r} is not a <link> of the file")
+            ends[end] = ref
+        if ends["child"] in parent_of:
+            raise ValueError(
+                f"{where}: link {ends['child']!r} is already the child of joint {parent_of[ends['child']]!r}"
+            )
+        parent_of[ends["child"]] = name
+        children[ends["parent"]].append(ends["child"])
+        _check_origin(joint, where)
+        jtype = joint.get("type")
+        if jtype in _MOVABLE:
+            axis_el = joint.find("axis")
+            axis = [1.0, 0.0, 0.0] if axis_el is None else _numbers(axis_el, "xyz", 3, where, "1 0 0")
+            if math.sqrt(sum(v * v for v in axis)) < 1e-9:
+                raise ValueError(f"{where}: the axis is zero")
+            limit = joint.find("limit")
+            if limit is not None and jtype != "continuous":
+                # robot files write "no limit" as +-1e16 and the like: any finite float32 passes
+                lower = _numbers(limit, "lower", 1, where, "0", bound=3e38)[0]
+                upper = _numbers(limit, "upper", 1, where, "0", bound=3e38)[0]
+                if lower > upper:
+                    raise ValueError(f"{where}: lower limit {lower:g} > upper limit {upper:g}")
+    roots = [n for n in links if n not in parent_of]
+    if len(roots) != 1:
+        what = "no link is" if not roots else f"links {roots} are"
+        raise ValueError(f"{source}: {what} without a parent joint; a URDF must be one tree from one root")
+    depth = {roots[0]: 0}
+    todo = [roots[0]]
+    while todo:
+        link = todo.pop()
+        for child in children[link]:
+            depth[child] = depth[link] + 1
+            if depth[child] > MAX_TREE_DEPTH:
+                raise ValueError(
+                    f"{source}: link {child!r} is more than {MAX_TREE_DEPTH} joints below the root"
+                )
+            todo.append(child)
+    lost = [n for n in links if n not in depth]
+    if lost:
+        raise ValueError(f"{source}: links {lost[:5]} are not reached from the root {roots[0]!r} (a cycle)")
+
+
 def build_chain(xml: str, source: str):
     """The pytorch-kinematics chain of the URDF text ``xml``; errors and warnings name ``source``.
 
-    The URDF parser prints its complaints to stderr; they become warnings here, except the one about the
-    optional ``name`` of ``<collision>``/``<visual>`` (URDF spec; used by :func:`link_geometry`).
+    The text is checked first (:func:`validate_urdf`). The URDF parser prints its complaints to stderr;
+    they become warnings here, except the one about the optional ``name`` of ``<collision>``/``<visual>``
+    (URDF spec; used by :func:`link_geometry`).
     """
     import pytorch_kinematics as pk
     from pytorch_kinematics.urdf_parser_py.xml_reflection import core as xml_core
+
+    validate_urdf(parse_urdf_xml(xml, source), source)
 
     complaints: list[str] = []
     saved = xml_core.on_error

@@ -46,6 +46,16 @@ def test_leading_batch_dims_and_single_pose(skel, random_poses):
     assert skel.transforms(theta).shape == (2, 3, 5, len(skel.joint_names), 4, 4)
 
 
+def test_empty_batch(skel):
+    D, J = len(skel.dof_names), len(skel.joint_names)
+    assert skel.fk(torch.zeros(0, D)).shape == (0, J, 3)
+    assert skel.fk(torch.zeros(2, 0, D)).shape == (2, 0, J, 3)
+    assert skel.transforms(torch.zeros(0, D)).shape == (0, J, 4, 4)
+    axes, pivots = skel.dof_axes(torch.zeros(0, D))
+    assert axes.shape == pivots.shape == (0, D, 3)
+    assert skel.capsules(torch.zeros(0, D))[0].shape == (0, len(skel.bones), 2, 3)
+
+
 def test_fk_gradient_matches_finite_differences(skel, random_poses):
     theta = random_poses(skel, (3,), torch.float64, seed=1).requires_grad_(True)
     assert torch.autograd.gradcheck(lambda t: skel.fk(t), (theta,), eps=1e-6, atol=1e-6)

@@ -70,3 +70,72 @@ def test_errors_name_the_source(tmp_path, data_dir):
         Skeleton.from_urdf(data_dir / "malformed.urdf")
     with pytest.raises(ValueError, match="<urdf string>: invalid URDF XML"):
         parse_urdf_xml("<robot>", "<urdf string>")
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "message"),
+    [
+        (
+            '<parent link="torso"/><child link="leg"/>',
+            '<parent link="torsoo"/><child link="leg"/>',
+            "joint 'hip': parent link 'torsoo' is not a <link>",
+        ),
+        ('<child link="leg"/>', '<child link="legg"/>', "joint 'hip': child link 'legg'"),
+        ('<axis xyz="0 1 0"/>', '<axis xyz="0 0 0"/>', "joint 'hip': the axis is zero"),
+        ('<axis xyz="0 1 0"/>', '<axis xyz="0 nan 0"/>', "joint 'hip'.*finite"),
+        ('xyz="0 0 -0.1"', 'xyz="0 inf -0.1"', "joint 'hip'.*finite"),
+        ('xyz="0 0 -0.1"', 'xyz="0 1e200 -0.1"', "joint 'hip'.*within"),
+        ('xyz="0 0 -0.1"', 'xyz="0 1_000 -0.1"', "joint 'hip'.*not 3 number"),
+        ('xyz="0 0 -0.1"', 'xyz="0 \u0661 -0.1"', "joint 'hip'.*not 3 number"),
+        (
+            'lower="-2" upper="2" effort="1" velocity="1"/></joint>\n  <joint name="ankle"',
+            'lower="2" upper="-2" effort="1" velocity="1"/></joint>\n  <joint name="ankle"',
+            "joint 'hip': lower limit 2 > upper limit -2",
+        ),
+        (
+            'lower="-2" upper="2" effort="1" velocity="1"/></joint>\n  <joint name="ankle"',
+            'lower="nan" upper="2" effort="1" velocity="1"/></joint>\n  <joint name="ankle"',
+            "joint 'hip'",
+        ),
+        ('<cylinder radius="0.07"', '<cylinder radius="-0.07"', "link 'torso' <collision name='arm'>.*> 0"),
+        ('<cylinder radius="0.07"', '<cylinder radius="0"', "> 0"),
+        ('<capsule radius="0.09"', '<capsule radius="nan"', "link 'torso'"),
+        ('<joint name="wrist"', '<joint name="roll"', "duplicate joint name 'roll'"),
+        ('<link name="foot"/>', '<link name="foot"/><link name="stray"/>', "links \\['base', 'stray'\\]"),
+    ],
+)
+def test_validation_names_the_element(tmp_path, data_dir, old, new, message):
+    text = (data_dir / "odd.urdf").read_text()
+    assert old in text
+    bad = tmp_path / "bad.urdf"
+    bad.write_text(text.replace(old, new, 1))
+    with pytest.raises(ValueError, match=message) as info:
+        Skeleton.from_urdf(bad)
+    assert "bad.urdf" in str(info.value)
+
+
+def test_validation_refuses_cycles_deep_trees_and_bad_radii(data_dir):
+    links = "".join(f'<link name="l{i}"/>' for i in range(3))
+    joints = "".join(
+        f'<joint name="j{i}" type="fixed"><parent link="l{i}"/><child link="l{(i + 1) % 3}"/></joint>'
+        for i in range(3)
+    )
+    with pytest.raises(ValueError, match="no link is without a parent joint"):
+        Skeleton.from_urdf(f"<robot name='c'>{links}{joints}</robot>")
+    n = 300
+    links = "".join(f'<link name="l{i}"/>' for i in range(n + 1))
+    joints = "".join(
+        f'<joint name="j{i}" type="fixed"><parent link="l{i}"/><child link="l{i + 1}"/></joint>'
+        for i in range(n)
+    )
+    with pytest.raises(ValueError, match="more than 256 joints below the root"):
+        Skeleton.from_urdf(f"<robot name='deep'>{links}{joints}</robot>")
+    with pytest.raises(ValueError, match="radii must be finite and > 0"):
+        Skeleton.from_urdf(data_dir / "odd.urdf", radii={"arm": float("nan")})
+
+
+def test_non_utf8_urdf_names_the_file(tmp_path):
+    bad = tmp_path / "latin.urdf"
+    bad.write_bytes(b"<robot name='\xe9'><link name='a'/></robot>")
+    with pytest.raises(ValueError, match="latin.urdf: not a UTF-8"):
+        Skeleton.from_urdf(bad)
