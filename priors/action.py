@@ -392,6 +392,21 @@ class ActionModel(nn.Module):
             )
         return self
 
+    def at_fps(self, fps: float) -> ActionModel:
+        """This model for tracking at another frame rate (``self`` if equal): σ_φ and α rescaled by
+        :func:`priors.diffusion.at_rate` (the rule of the learned dynamics). The aSpace, ĝ, σ_k and Δ describe
+        postures, not time, and stay; a phase advances ``fps_model / fps`` postures per frame.
+
+        A model fitted at 120 fps and used at 30 fps without this diffuses 4x too little per frame: the
+        particles cannot follow the motion and the filter loses the person.
+        """
+        from priors.diffusion import at_rate
+
+        if math.isclose(float(fps), self.fps, rel_tol=1e-9):
+            return self
+        sigma_phi, alpha = at_rate(self.sigma_phi, self.alpha, self.fps, float(fps))
+        return ActionModel(**{**self._init_kwargs(), "sigma_phi": sigma_phi, "alpha": alpha, "fps": fps})
+
     def _init_kwargs(self) -> dict[str, Any]:
         return dict(
             dof_names=self.dof_names,
@@ -596,6 +611,16 @@ class ActionConstrained(Dynamics):
        after ``max_tries`` draws a particle keeps its last, unaccepted, draw, so a pose that has left the
        action is still tracked by the likelihood instead of freezing.
 
+    **Never worse than its plain dynamics.** A pose or a frame rate the model has not seen makes eq. 6 reject
+    nearly every prediction; redrawing then only burns tries and can pin the particles to the few accepted
+    ones. So where fewer than ``min_accept`` of a frame's first draws (per sequence of a batch) are accepted,
+    that frame keeps the first draws, i.e. samples the plain eq. 3 dynamics, warns once, and says so in the
+    filter's per-frame stats (:meth:`frame_stats`): ``action_accepted`` (share of the frame's particles
+    that eq. 6 can accept) and ``action_fallback`` (that share is below ``min_accept``), both ``(...)``,
+    stacked over time in ``Track.stats`` / ``TrackResult.stats``. A model fitted at another frame rate is
+    rescaled to the tracking rate when ``fps`` is given (:meth:`ActionModel.at_fps`; the ``action`` factory
+    passes the tracker's).
+
     The resulting transition density is ``p(φ_t | φ_{t-1}) p(φ_t | Γ) / Z(φ_{t-1})`` (eq. 5); its normaliser
     ``Z`` is intractable, so :meth:`log_prob` returns ``log p(φ_t | φ_{t-1}) + log P(accept | φ_t)``,
     unnormalised in ``φ_{t-1}`` (fine for ranking, not for importance corrections that need exact densities).
@@ -621,6 +646,10 @@ class ActionConstrained(Dynamics):
         skeleton: the particles' skeleton, if known: the model is put in its ``dof_names`` order and its
             angular posture DOFs are checked against ``skeleton.dof_revolute``
             (:meth:`ActionModel.check_revolute`).
+        fps: tracking frame rate (Hz); the model's σ_φ and α are rescaled to it (:meth:`ActionModel.at_fps`).
+            ``None``: the model's rate.
+        min_accept: below this share of accepted first draws a frame falls back to the plain dynamics
+            (0 never falls back).
 
     Example::
 
@@ -638,12 +667,18 @@ class ActionConstrained(Dynamics):
         alpha: float | None = None,
         sigma_scale: float = 1.0,
         skeleton=None,
+        fps: float | None = None,
+        min_accept: float = 0.01,
     ):
         super().__init__()
         if int(max_tries) < 1:
             raise ValueError(f"max_tries must be >= 1, got {max_tries}")
+        if not 0.0 <= float(min_accept) < 1.0:
+            raise ValueError(f"min_accept must be in [0, 1), got {min_accept}")
         if skeleton is not None:
             model = model.for_dof_names(skeleton.dof_names).check_revolute(skeleton.dof_revolute)
+        if fps is not None:
+            model = model.at_fps(fps)
         if dynamics is None:
             sigma = model.sigma_phi * float(sigma_scale)
             dynamics = ConstantVelocity(sigma, alpha=model.alpha if alpha is None else float(alpha))
@@ -652,6 +687,7 @@ class ActionConstrained(Dynamics):
         self.model = model
         self.dynamics = as_dynamics(dynamics)
         self.max_tries = int(max_tries)
+        self.min_accept = float(min_accept)
 
     def _accepted(self, x: Tensor) -> Tensor:
         """``(..., N)`` bool: eq. 6 can accept ``x`` (``P(accept | x) > 0``)."""
@@ -664,6 +700,12 @@ class ActionConstrained(Dynamics):
     def update_extras(self, x_new: Tensor, x_old: Tensor, extras: Mapping[str, Tensor]) -> dict[str, Tensor]:
         """The wrapped dynamics' update (Rius eq. 3's velocity smoothing) and ``"accepted"`` of ``x_new``."""
         return {**self.dynamics.update_extras(x_new, x_old, extras), "accepted": self._accepted(x_new)}
+
+    def frame_stats(self, x: Tensor, log_weights: Tensor, extras: Mapping[str, Tensor]) -> dict[str, Tensor]:
+        """``action_accepted`` (share of the frame's particles eq. 6 can accept) and ``action_fallback``
+        (that share below ``min_accept``: the frame ran on the plain dynamics), each ``(...)``."""
+        share = extras["accepted"].to(log_weights.dtype).mean(-1)
+        return {"action_accepted": share, "action_fallback": share < self.min_accept}
 
     def sample(
         self,
@@ -683,9 +725,10 @@ class ActionConstrained(Dynamics):
         extras: Mapping[str, Tensor] | None = None,
     ) -> tuple[Tensor, dict[str, Tensor]]:
         """Like :meth:`sample`, also returning the sampler's record per particle: ``(x_new (..., N, D),
-        {"accepted": (..., N) bool, "accepted_first": (..., N) bool, "tries": (..., N)})``.
+        {"fallback": (..., N) bool, "accepted": (..., N) bool, "accepted_first": (..., N) bool,
+        "tries": (..., N)})`` (``fallback``: the particle's frame fell back to the plain dynamics).
 
-        No host sync beyond the retry loop's "anything left?" check.
+        Host syncs: the fallback check and one "anything left?" per retry round.
         """
         # particles are independent, so all batch dims flatten to one (M, D)
         flat_x, batch = flatten_batch(x, 1)
@@ -693,6 +736,17 @@ class ActionConstrained(Dynamics):
         out = self.dynamics.sample(flat_x, generator, extras=flat_extras)
         ok = self.model.accepts(out, generator)
         first = ok.clone()
+        # a sequence whose first draws eq. 6 all but rejects falls back to them: the plain dynamics
+        share = unflatten_batch(ok, batch).to(x.dtype).mean(-1, keepdim=True)
+        fallback = (share < self.min_accept).expand(batch).reshape(-1)
+        if self.min_accept > 0 and bool(fallback.any()):
+            warnings.warn(
+                f"action model {self.model.action!r} accepts fewer than {self.min_accept:.0%} of the "
+                "predicted poses (an unseen pose or frame rate); those frames use its plain dynamics "
+                "(stats 'action_fallback')",
+                stacklevel=2,
+            )
+            ok = ok | fallback
         tries = torch.ones_like(ok, dtype=x.dtype)
         for _ in range(self.max_tries - 1):
             pending = (~ok).nonzero().squeeze(-1)  # one host sync per retry round, not per particle
@@ -704,7 +758,9 @@ class ActionConstrained(Dynamics):
             out = out.index_copy(0, pending, sub)
             ok = ok.index_copy(0, pending, acc)
             tries = tries.index_add(0, pending, torch.ones_like(sub[:, 0]))
+        ok = ok & ~fallback
         stats = {
+            "fallback": unflatten_batch(fallback, batch),
             "accepted": unflatten_batch(ok, batch),
             "accepted_first": unflatten_batch(first, batch),
             "tries": unflatten_batch(tries, batch),
@@ -712,12 +768,19 @@ class ActionConstrained(Dynamics):
         return unflatten_batch(out, batch), stats
 
     def log_prob(self, x_new: Tensor, x_old: Tensor, *, extras: Mapping[str, Tensor] | None = None) -> Tensor:
-        """``log p(x_new | x_old) + log P(accept | x_new)`` ``(..., N)``, unnormalised in x_old (eq. 5)."""
+        """``log p(x_new | x_old) + log(m + (1 - m) P(accept | x_new))`` ``(..., N)`` with ``m = min_accept``,
+        unnormalised in x_old (eq. 5 for ``m = 0``).
+
+        The floor ``m`` is the fallback's share in the density: a pose eq. 6 rejects is ``1 / m`` times less
+        likely, not impossible (an annealed filter that weights its layers with the prior would otherwise
+        fail every frame of a pose the model has not seen).
+        """
         base = self.dynamics.log_prob(x_new, x_old, extras=extras)
-        return base + torch.log(self.model.accept_probability(x_new).to(base))
+        p = self.model.accept_probability(x_new).to(base)
+        return base + torch.log(self.min_accept + (1.0 - self.min_accept) * p)
 
     def extra_repr(self) -> str:
-        return f"max_tries={self.max_tries}"
+        return f"max_tries={self.max_tries}, min_accept={self.min_accept:g}"
 
 
 def _json_default(obj):

@@ -19,6 +19,7 @@ without geometry) gets 0: held still.
   DOF that moves a capsule) or explicit values; it logs :func:`sigma_summary` and warns when it guesses.
 * :data:`SPEEDS`, :data:`ANGULAR_SPEEDS` -- the default per-class speeds, measured on the CMU walks and runs
   (``/work/shared/mocap/cmu``, 11 clips at 120 fps).
+* :func:`at_rate` -- per-frame stds and α learned at one frame rate, at another.
 * :class:`LearnedDynamics` -- per-DOF step stds and the constant-velocity α (Rius eq. 3) learned from mocap
   (``python -m training fit-dynamics``), saved as a versioned ``.npz``; the ``learned`` factory
   (:func:`priors.factories.learned`) reads it.
@@ -317,6 +318,26 @@ def diffusion_sigma(
 
 # ------------------------------------------------------------------------------------- learned dynamics
 
+
+def at_rate(std, alpha, from_fps: float, to_fps: float):
+    """Per-frame motion statistics learned at ``from_fps`` as per-frame statistics at ``to_fps`` (Hz).
+
+    ``std (...)`` (rad / m per frame: step stds, constant-velocity prediction errors σ_φ) scale like a
+    speed, ``x (from_fps / to_fps)`` (:func:`priors.table5.rescale` with ``exponent=1``; on the CMU walks
+    the fitted step stds grow 1.9x from 120 to 60 fps and 3.4x to 30 fps); the velocity smoothing α of Rius
+    eq. 3 (a float or a per-DOF tensor) keeps its time constant, ``α ** (from_fps / to_fps)``. The one
+    rule for :class:`LearnedDynamics` and :class:`priors.action.ActionModel` alike.
+
+    Returns:
+        ``(std, alpha)`` at ``to_fps``.
+    """
+    from priors.table5 import rescale
+
+    if not (math.isfinite(float(to_fps)) and float(to_fps) > 0):
+        raise ValueError(f"fps must be > 0, got {to_fps}")
+    return rescale(std, to_fps, from_fps=from_fps, exponent=1.0), alpha ** (from_fps / to_fps)
+
+
 #: ``metadata["format"]`` of a learned-dynamics file.
 FORMAT = "torchpf-learned-dynamics"
 #: Current file-format version; files with a higher version are refused.
@@ -372,23 +393,14 @@ class LearnedDynamics:
             raise ValueError(f"alpha must be in [0, 1], got {self.alpha}")
 
     def at_fps(self, fps: float) -> LearnedDynamics:
-        """The statistics per frame at another rate: stds ``x (self.fps / fps)`` (steps of real motion scale
-        like a speed, see :data:`SPEEDS`; :func:`priors.table5.rescale` with ``exponent=1``) and
-        ``alpha ** (self.fps / fps)`` (the same smoothing time constant)."""
-        from priors.table5 import rescale
-
+        """The statistics per frame at another rate (:func:`at_rate`)."""
         if math.isclose(fps, self.fps, rel_tol=1e-9):
             return self
-        ratio = self.fps / fps
+        step_std, alpha = at_rate(self.step_std, self.alpha, self.fps, fps)
+        cv_std, _ = at_rate(self.cv_std, self.alpha, self.fps, fps)
         return LearnedDynamics(
-            self.dof_names,
-            fps,
-            rescale(self.step_std, fps, from_fps=self.fps, exponent=1.0),
-            self.alpha**ratio,
-            rescale(self.cv_std, fps, from_fps=self.fps, exponent=1.0),
-            self.revolute,
-            dict(self.info),
-        )
+            self.dof_names, fps, step_std, alpha, cv_std, self.revolute, dict(self.info)
+        )  # fmt: skip
 
     def select(self, dof_names, *, source: str = "learned dynamics") -> LearnedDynamics:
         """Reordered to ``dof_names`` (e.g. ``skel.dof_names``); other DOF names raise a ``ValueError``."""

@@ -168,6 +168,12 @@ def _track(args) -> int:
         f"evaluations/frame) in {result.seconds:.1f} s: mean ESS {float(result.ess.mean()):.1f}, "
         f"{n_failed} failed frames, log-evidence {result.log_evidence:.1f}; wrote {args.out}"
     )
+    if "action_fallback" in result.stats:  # a learned prior says when it gave up on the sequence
+        fell, accepted = result.stats["action_fallback"], result.stats["action_accepted"]
+        print(
+            f"action prior: accepted {100 * float(accepted.float().mean()):.0f}% of the particles; fell back "
+            f"to its plain dynamics on {int(fell.sum())} of {fell.numel()} frames"
+        )
     if seq.truth is not None:
         from torchpf import metrics
 
