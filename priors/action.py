@@ -392,6 +392,36 @@ class ActionModel(nn.Module):
             )
         return self
 
+    def truncated(self, n_components: int, n_sigma: float | None = None) -> ActionModel:
+        """This model on its first ``n_components`` aSpace dimensions (``self`` if that is all of them and
+        ``n_sigma`` is ``None`` or unchanged), with acceptance half-width ``n_sigma`` if given.
+
+        PCA coordinates are nested, so ĝ, σ_k and Δ of the smaller model are the leading columns of this one's
+        (under this model's synchronisation): how model selection scores every ``D`` from one fit.
+        """
+        d = int(n_components)
+        if not 1 <= d <= self.n_components:
+            raise ValueError(f"n_components must be in [1, {self.n_components}], got {n_components}")
+        n_sigma = self.n_sigma if n_sigma is None else float(n_sigma)
+        if d == self.n_components and n_sigma == self.n_sigma:
+            return self
+        training = self.training_data
+        if training is not None:
+            training = {**training, "coords": training["coords"][:, :d]}
+        return ActionModel(
+            **{
+                **self._init_kwargs(),
+                "components": self.components[:d],
+                "mean_performance": self.mean_performance[:, :d],
+                "std": self.std[:, :d],
+                "delta": self.delta[:d],
+                "explained_variance": self.explained_variance[:d],
+                "explained_variance_ratio": self.explained_variance_ratio[:d],
+                "training": training,
+                "n_sigma": n_sigma,
+            }
+        )
+
     def at_fps(self, fps: float) -> ActionModel:
         """This model for tracking at another frame rate (``self`` if equal): σ_φ and α rescaled by
         :func:`priors.diffusion.at_rate` (the rule of the learned dynamics). The aSpace, ĝ, σ_k and Δ describe
