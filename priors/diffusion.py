@@ -357,7 +357,8 @@ class LearnedDynamics:
         fps: frame rate (Hz) the statistics are per frame at.
         step_std: (D,) robust std of the frame steps ``θ_t - θ_{t-1}`` (``1.4826 · median |step|``), the
             random walk's std (rad / m per frame).
-        alpha: the constant-velocity smoothing α of Rius eq. 3 that minimises the squared prediction error.
+        alpha: the constant-velocity smoothing α of Rius eq. 3 that minimises the squared prediction error:
+            a float, or a ``(D,)`` tensor with one α per DOF (``fit-dynamics``' default, Rius §3.1 per DOF).
         cv_std: (D,) robust std of the constant-velocity prediction errors at ``alpha`` (Rius' σ_φ).
         revolute: (D,) bool, angles or distances.
         info: JSON-able provenance (source files, frames, robust estimator).
@@ -369,7 +370,7 @@ class LearnedDynamics:
     dof_names: list[str]
     fps: float
     step_std: torch.Tensor
-    alpha: float
+    alpha: float | torch.Tensor
     cv_std: torch.Tensor
     revolute: torch.Tensor
     info: dict = field(default_factory=dict)
@@ -386,10 +387,14 @@ class LearnedDynamics:
         for label, t in (("step_std", self.step_std), ("cv_std", self.cv_std)):
             if not torch.isfinite(t).all() or (t < 0).any():
                 raise ValueError(f"{label} must be finite and >= 0")
-        self.fps, self.alpha = float(self.fps), float(self.alpha)
+        self.fps = float(self.fps)
+        alpha = torch.as_tensor(np.asarray(self.alpha, dtype=np.float64)).clone()
+        if alpha.ndim not in (0, 1) or alpha.ndim == 1 and alpha.shape != (D,):
+            raise ValueError(f"alpha must be a float or ({D},) per DOF, got shape {tuple(alpha.shape)}")
+        self.alpha = float(alpha) if alpha.ndim == 0 else alpha
         if not (math.isfinite(self.fps) and self.fps > 0):
             raise ValueError(f"fps must be > 0, got {self.fps}")
-        if not 0.0 <= self.alpha <= 1.0:
+        if not ((alpha >= 0.0) & (alpha <= 1.0)).all():
             raise ValueError(f"alpha must be in [0, 1], got {self.alpha}")
 
     def at_fps(self, fps: float) -> LearnedDynamics:
@@ -416,7 +421,9 @@ class LearnedDynamics:
             )
         index = torch.tensor([self.dof_names.index(n) for n in want])
         return LearnedDynamics(
-            want, self.fps, self.step_std[index], self.alpha, self.cv_std[index], self.revolute[index],
+            want, self.fps, self.step_std[index],
+            self.alpha if isinstance(self.alpha, float) else self.alpha[index],
+            self.cv_std[index], self.revolute[index],
             dict(self.info),
         )  # fmt: skip
 
@@ -427,7 +434,7 @@ class LearnedDynamics:
             "version": FORMAT_VERSION,
             "dof_names": self.dof_names,
             "fps": self.fps,
-            "alpha": self.alpha,
+            "alpha": self.alpha if isinstance(self.alpha, float) else self.alpha.tolist(),
             "info": self.info,
         }
         buffer = io.BytesIO()

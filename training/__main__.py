@@ -151,6 +151,13 @@ def _inspect(args: argparse.Namespace) -> int:
     return 0
 
 
+def _alpha_text(alpha) -> str:
+    """A scalar α, or the range of per-DOF ones."""
+    if isinstance(alpha, float):
+        return f"{alpha:.3g}"
+    return f"{float(alpha.min()):.3g}..{float(alpha.max()):.3g} per DOF (median {float(alpha.median()):.3g})"
+
+
 def _fit_dynamics(args: argparse.Namespace) -> int:
     from priors.diffusion import sigma_summary
     from torchpf.skeleton import Skeleton
@@ -165,7 +172,7 @@ def _fit_dynamics(args: argparse.Namespace) -> int:
     stats.save(args.out)
     print(
         f"wrote {args.out}: {len(stats.dof_names)} DOFs from {len(args.files)} files "
-        f"({stats.info['frames']} frames) at {stats.fps:g} fps, alpha={stats.alpha:.3g}"
+        f"({stats.info['frames']} frames) at {stats.fps:g} fps, alpha={_alpha_text(stats.alpha)}"
     )
     print(sigma_summary(skeleton, stats.step_std, fps=stats.fps, source="learned"))
     return 0

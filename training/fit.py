@@ -49,9 +49,10 @@ in :mod:`training.align`):
    to posture k, pooled over neighbouring postures with a Gaussian window of ``sigma_smoothing`` postures
    (a few frames per posture per performance are too few for a standard deviation); Δ the RMS of all
    residuals per dimension.
-7. *Constant-velocity statistics* (Rius eq. 3): with ``V_t = α V_{t-1} + (1 - α)(φ_t - φ_{t-1})`` and the
-   prediction ``φ̂_{t+1} = φ_t + V_t``, α minimises the squared prediction error over the posture DOFs of
-   all performances (bounded scalar least squares), and σ_φ is the per-DOF robust standard deviation
+7. *Constant-velocity statistics* (Rius eq. 3; :func:`training.dynamics.cv_statistics`, shared with
+   ``fit-dynamics``): with ``V_t = α V_{t-1} + (1 - α)(φ_t - φ_{t-1})`` and the prediction
+   ``φ̂_{t+1} = φ_t + V_t``, α minimises the squared prediction error over the posture DOFs of all
+   performances (one α: the model file stores a scalar), and σ_φ is the per-DOF robust standard deviation
    (``1.4826 · median |e|``, insensitive to Euler flips) of the prediction errors ``e`` at that α.
 
 Shapes: ``T`` frames, ``D_full`` DOFs of the pose vector, ``P`` posture DOFs, ``D`` aSpace dimensions,
@@ -68,13 +69,12 @@ from typing import Any
 
 import numpy as np
 import torch
-from scipy.optimize import minimize_scalar
-from scipy.signal import lfilter
 from sklearn.decomposition import PCA
 from tqdm.auto import tqdm
 
 from priors.action import ActionModel, guess_revolute
 from training.align import PERIODIC_THRESHOLD, dba_update, dtw_align, estimate_period, initial_mean, resample
+from training.dynamics import cv_statistics, fit_alpha
 from training.mocap import Motion
 
 #: Default ``exclude`` patterns (case-insensitive regular expressions searched in DOF names): the hand,
@@ -136,37 +136,6 @@ def _smooth_over_postures(values: np.ndarray, width: float, cyclic: bool) -> np.
                 shifted[:o] = values[-o:]
             out += wo * shifted
     return out
-
-
-def constant_velocity_errors(deltas: np.ndarray, alpha: float) -> np.ndarray:
-    """Prediction errors of Rius eq. 3 along one performance.
-
-    Args:
-        deltas: ``(T-1, D)`` frame differences ``φ_t - φ_{t-1}``.
-        alpha: velocity smoothing α.
-
-    Returns:
-        ``(T-2, D)`` errors ``e_{t+1} = (φ_{t+1} - φ_t) - V_t`` with ``V_t = α V_{t-1} + (1-α) δ_t``,
-        ``V`` started at the first difference.
-    """
-    if deltas.shape[0] < 2:
-        return np.zeros((0, deltas.shape[1]))
-    v = lfilter([1.0 - alpha], [1.0, -alpha], deltas, axis=0, zi=alpha * deltas[:1])[0]
-    return deltas[1:] - v[:-1]
-
-
-def fit_alpha(deltas: Sequence[np.ndarray]) -> float:
-    """Rius eq. 3's α: the velocity smoothing in ``[0, 0.999]`` that minimises the squared prediction error
-    ``Σ ||constant_velocity_errors(δ, α)||²`` over performances (bounded scalar least squares).
-
-    Args:
-        deltas: per performance, ``(T_r - 1, D)`` frame differences of the DOFs that count.
-    """
-
-    def loss(alpha: float) -> float:
-        return float(sum(np.sum(constant_velocity_errors(d, alpha) ** 2) for d in deltas))
-
-    return float(minimize_scalar(loss, bounds=(0.0, 0.999), method="bounded").x)
 
 
 # ================================================================================================ fitter
@@ -409,9 +378,9 @@ class ActionModelFitter:
 
         # 7. constant-velocity statistics
         deltas = [np.diff(a, axis=0) for a in full]
+        # one α over the posture DOFs (the model file's scalar α), σ_φ per DOF at it: training.dynamics' rule
         alpha = fit_alpha([d[:, pidx] for d in deltas]) if self.alpha is None else float(self.alpha)
-        errors = np.concatenate([constant_velocity_errors(d, alpha) for d in deltas])
-        sigma_phi = 1.4826 * np.median(np.abs(errors), 0) if len(errors) else np.zeros(len(names))
+        sigma_phi = cv_statistics(deltas, alpha)[1]
 
         self.dof_names_ = names
         self.posture_dofs_ = posture

@@ -14,7 +14,8 @@ from torchpf.assets import path as asset_path
 from torchpf.skeleton import Skeleton
 from training import ActionModelFitter, fit_action_model
 from training.align import resample
-from training.fit import constant_velocity_errors, select_posture_dofs
+from training.dynamics import constant_velocity_errors
+from training.fit import select_posture_dofs
 from training.mocap import CMU_SCALE, Motion, bvh_motion, read_bvh
 from training.synthetic import PerformerStyle, generate
 
