@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from priors.action import ActionConstrained, ActionModel, ActionModelFormatError
+from priors.action import ActionConstrained, ActionModel, ActionModelFormatError, ActionProposal
 from priors.motion import ConstantVelocity
 from torchpf.distributions import Dynamics
 from torchpf.filters import ParticleFilter
@@ -430,3 +430,65 @@ def test_action_constrained_adapts_a_duck_typed_dynamics_once():
     out = dyn.sample(x, torch.Generator().manual_seed(0), extras=extras)
     assert out.shape == x.shape
     torch.testing.assert_close(dyn.log_prob(out, x, extras=extras), model.accept_probability(out).log())
+
+
+# ----------------------------------------------------------------------------------- beyond rejection
+
+
+def test_soft_prior_is_a_gaussian_around_the_matched_posture_and_its_test_matches_it():
+    model = tiny_model()
+    theta = near_mean_poses(model, 4000, 0.1, seed=3)
+    p = model.soft_accept_probability(theta)
+    assert ((p > 0) & (p <= 1)).all()
+    at_mean = model.pose(
+        model.mean_performance, torch.zeros(model.n_postures, len(NAMES), dtype=torch.float64)
+    )
+    assert (model.soft_accept_probability(at_mean) > 0.5).all()
+    freq = model.accepts_soft(theta, torch.Generator().manual_seed(1)).double().mean()
+    assert abs(float(freq) - float(p.mean())) < 0.03
+    dyn = ActionConstrained(model, mode="soft", min_accept=0.0)
+    x_old = near_mean_poses(model, 30, 0.05)
+    extras = {"velocity": torch.zeros_like(x_old)}
+    x_new = dyn.sample(x_old, torch.Generator().manual_seed(2), extras=extras)
+    torch.testing.assert_close(
+        dyn.log_prob(x_new, x_old, extras=extras),
+        dyn.dynamics.log_prob(x_new, x_old, extras=extras) + model.soft_accept_probability(x_new).log(),
+    )
+    with pytest.raises(ValueError, match="mode"):
+        ActionConstrained(model, mode="hard")
+
+
+def test_phase_advance_follows_the_mean_performance_and_its_proposal_density_is_exact():
+    from torchpf.filters.state import ParticleState
+    from torchpf.proposals import GaussianRandomWalk
+
+    model = tiny_model()
+    base = torch.zeros(model.n_postures, len(NAMES), dtype=torch.float64)
+    on_mean = model.pose(model.mean_performance, base)
+    moved = model.project(on_mean + model.phase_step(on_mean, 1.0))
+    torch.testing.assert_close(moved, model.mean_performance.roll(-1, 0))  # one posture ahead, cyclic
+    half = model.project(on_mean + model.phase_step(on_mean, 0.5))
+    torch.testing.assert_close(half, 0.5 * (model.mean_performance + model.mean_performance.roll(-1, 0)))
+
+    dyn = GaussianRandomWalk(torch.full((len(NAMES),), 0.05, dtype=torch.float64))
+    q = ActionProposal(model, dyn, fps=15.0, beta=0.25)  # model at 30 fps: half a posture per frame
+    assert q.advance == 2.0
+    parents = near_mean_poses(model, 300, 0.02)
+    state = ParticleState(parents, torch.zeros(300), torch.zeros(()), {}, {})
+    x, log_q = q.sample(state, None, torch.Generator().manual_seed(0))
+    assert x.shape == parents.shape and torch.isfinite(log_q).all()
+    from torchpf.distributions import diag_normal_log_prob
+
+    expected = torch.logaddexp(
+        math.log(0.25) + dyn.log_prob(x, parents),
+        math.log(0.75) + diag_normal_log_prob(x, q.mean(parents), q.noise),
+    )
+    torch.testing.assert_close(log_q, expected)
+
+    # in a filter: the correction weights keep it finite and tracking
+    def likelihood(x, obs):
+        return -0.5 * ((x - obs) ** 2).sum(-1) / 0.1**2
+
+    pf = ParticleFilter(dyn, likelihood, proposal=q, n_particles=200, progress=False)
+    track = pf.run([parents[0]] * 3, parents[:1].expand(200, -1).clone(), generator=0)
+    assert not track.failed.any() and torch.isfinite(track.estimates).all()
