@@ -10,6 +10,7 @@
   ``DepthGuided`` (Hauberg eq. 13-14) and the ``AngularRejection`` baseline (Hauberg eq. 4).
 * :mod:`priors.action`: the action model Γ = (Ω, ĝ, σ), ``ActionConstrained`` dynamics (Rius eq. 1-6, or
   a soft prior) and the phase-advance importance distribution ``ActionProposal``.
+* :mod:`priors.bank`: ``ActionBank``, several action models with the action as a discrete particle state.
 
 Each motion prior is a :class:`torchpf.distributions.Dynamics` (an ``nn.Module``): ``sample(x, generator, *,
 extras)`` and ``log_prob(x_new, x_old, *, extras)`` where it is tractable, with no-op extras hooks unless it
@@ -30,6 +31,7 @@ _LAZY = {
     "ActionModel": "priors.action",
     "ActionConstrained": "priors.action",
     "ActionProposal": "priors.action",
+    "ActionBank": "priors.bank",
 }
 
 
