@@ -56,6 +56,28 @@ def fit_walk_model(cmu: Path, fps: float, components, progress: bool = False):
     return fitter.model_, fitter
 
 
+def fit_run_model(cmu: Path, fps: float, components: int = 6, n_sigma: float = 4.0):
+    """A run model from the one run of a training subject (16_46); one performer: no validation."""
+    run = [bvh_motion(read_bvh(cmu / "16_46.bvh"), CMU_SCALE)[1:]]
+    return ActionModelFitter(n_components=components, n_sigma=n_sigma, action="run", fps=fps).fit(run).model_
+
+
+def recognise(seq, models, n: int, seed: int, filter_name: str, fps: float) -> tuple[list[str], dict]:
+    """Track ``seq`` with an :class:`priors.bank.ActionBank` of ``models``: per-frame action labels (argmax
+    of the posterior) and the figures of :func:`run_one`."""
+    from priors.bank import ActionBank
+
+    skel = seq.skeleton
+    bank = ActionBank(models, random_walk(skel, fps=fps), fps=fps, skeleton=skel)
+    tracker = Tracker(
+        skel, seq.cameras, dynamics=bank, filter=filter_name, n_particles=n, fps=fps, progress=False
+    )
+    result = tracker.track(str(seq.path), seed=seed)
+    truth, est = skel.fk(seq.angles.to(torch.float64)), skel.fk(result.angles)
+    labels = [bank.actions[int(i)] for i in result.stats["action_posterior"].argmax(-1)]
+    return labels, {"mpjpe_mm": 1000 * float(metrics.mpjpe(truth, est))}
+
+
 def build_prior(name: str, skel, model, fps: float):
     """``(dynamics, proposal)`` of one prior for ``skel`` at ``fps``."""
     if name == "random_walk":
@@ -106,6 +128,14 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--filter", default="sir", help="filter (n_particles = evaluations per frame)")
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
+    ap.add_argument(
+        "--bank",
+        nargs="*",
+        metavar="CLIP:ACTION",
+        help="also track these clips (e.g. 35_30:walk 35_24:run) with a walk + run ActionBank at the "
+        "smallest "
+        "--learned N and report how often the action posterior names the right action",
+    )
     args = ap.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -177,6 +207,24 @@ def main(argv: list[str] | None = None) -> None:
             f"{clip}: best learned prior at N={n0}: {which} {best:.1f} mm; the random walk is no better "
             "up to " + (f"N={max(beaten)}" if beaten else f"none of N={[n for n, _ in rw]}")
         )
+    if args.bank:
+        models = [model, fit_run_model(args.cmu, args.fps)]
+        n0 = min(args.learned)
+        with tempfile.TemporaryDirectory() as tmp:
+            for spec in args.bank:
+                clip, _, truth_action = spec.partition(":")
+                seq = build_sequence(
+                    args.cmu / f"{clip}.bvh", Path(tmp) / clip, defects=args.defects, fps=args.fps,
+                    frames=args.frames,
+                )  # fmt: skip
+                for s in range(args.seeds):
+                    labels, figures = recognise(seq, models, n0, s, args.filter, args.fps)
+                    right = float(np.mean([a == truth_action for a in labels]))
+                    print(
+                        f"bank walk+run on {clip} ({truth_action}), N={n0}, seed {s}: right action on "
+                        f"{100 * right:.0f}% of frames, MPJPE {figures['mpjpe_mm']:.1f} mm",
+                        flush=True,
+                    )
     print(f"total {time.perf_counter() - t0:.0f}s")
 
 
