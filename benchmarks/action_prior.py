@@ -1,204 +1,230 @@
-"""Rius et al. Fig. 3: tracking error vs number of particles, 1st-order motion model with and without the
-action constraint, on a held-out real walk seen through synthetic silhouettes.
+"""Do learned priors pay off on people they were not trained on? Random walk vs the action model's priors on
+the foreign renderer, at equal likelihood evaluations (issue 14; Rius et al. Fig. 3).
 
-    python -m benchmarks.action_prior [--particles 100 300 1000 3000 10000] [--frames 15] [--seeds 2]
+    python -m benchmarks.action_prior [--rw 500 2500 10000] [--learned 500 2000] [--seeds 3] [--frames 30]
 
-Set-up (everything printed at the start of the run):
+Set-up (printed at the start of the run):
 
-* *Action model*: fitted (:mod:`training.fit`) on the CMU walks of ``../shared/mocap/cmu`` except the test
-  clip (subjects 07, 08, 16 and 35; frame 0, a rest pose, dropped), resampled to ``--fps``; α fixed to 0.5
-  as in the paper's experiments, so that σ_φ is the constant-velocity residual at the α we track with.
-  ``--components`` defaults to 8: with four training subjects, the paper's D = 13 accepts few frames of a new
-  performance (the model then overfits, as Rius §4 warns); pass ``--components 13`` to see it.
-* *Test sequence*: ``--frames`` frames (default 15 at 15 fps: one gait cycle) of the held-out walk
-  ``--test`` (default 35_30) at ``--fps``, on that subject's own skeleton; ``--cameras`` cameras on a ring
-  around the walk render clean silhouettes (:func:`torchpf.synth.synthesize`) at ``--size`` pixels.
-* *Likelihood*: :class:`torchpf.likelihoods.SilhouetteLikelihood` (Fontmarty eq. 2; ``--likelihood overlap``
-  for Rius eq. 7, four times slower) with 6 model points per capsule, finger/thumb capsules left out
-  (sub-pixel at this resolution).
-* *Filters*: :class:`torchpf.filters.ParticleFilter` (resampling when ESS < N/2) with the same
-  constant-velocity prior (Rius eq. 3, α = 0.5, σ_φ from the model), once plain and
-  once wrapped in :class:`priors.action.ActionConstrained` (eq. 6 rejection, at most 20 draws). Particles
-  start at the true first pose with the true first velocity. The velocity of eq. 3 is, as in the paper,
-  smoothed from the filter's estimates and shared by all particles (``--velocity particle``: each particle
-  smooths its own displacements, which turns the diffusion into a random walk of the velocity).
-* *Error*: per frame, the MMSE estimate against the truth: RMS over the 66 posture DOFs of the wrapped angle
-  error (degrees; Rius report the MSE of the relative angles) and the mean 3D joint-position error (cm),
-  averaged over frames 1..T-1 and over ``--seeds``.
+* *Action model*: fitted (:mod:`training.fit`, ``n_components="auto"``: D and n_sigma by
+  leave-one-performer-out validation) on the CMU walks of subjects 07, 08 and 16 (``../shared/mocap/cmu``;
+  frame 0, a rest pose, dropped) at ``--fps``; the validation curve is printed.
+* *Test sequences*: held-out subject-35 clips (``--test``, default the walk 35_30), rendered by the foreign
+  renderer (:mod:`benchmarks.foreign`: a body the tracker's capsules have never seen, ``--defects`` noisy
+  masks, 3 cameras) at ``--fps``, ``--frames`` frames, on the clip's own skeleton; never drawn with
+  :mod:`torchpf.synth`.
+* *Priors*, each in :class:`torchpf.Tracker` with the default bidirectional silhouette likelihood and the
+  ``--filter`` (default ``sir``, whose ``n_particles`` is the likelihood evaluations per frame):
+  ``random_walk`` (the structural random walk, the tracker's default, at ``--rw`` evaluations),
+  ``rius`` (eq. 6 0/1 rejection around that random walk), ``soft`` (the soft aSpace prior) and
+  ``proposal`` (:class:`priors.action.ActionProposal`, phase advance along ĝ with its p/q correction), at
+  ``--learned`` evaluations.
+* *Figures* per prior and N, mean over ``--seeds``: MPJPE (mm), failure rate (Fontmarty eq. 6, share of
+  (frame, joint) errors > 25 cm), mean ESS, seconds per frame, and for the action priors the mean share of
+  particles the model accepts and the frames that fell back to the plain dynamics.
 
-Runtime is dominated by the likelihood: about ``frames x 2 x sum(particles)`` pose evaluations.
+The run ends with the comparison of the issue: the best learned prior at the smallest ``--learned`` N
+against the random walk at each ``--rw`` N.
 """
 
 from __future__ import annotations
 
 import argparse
-import math
+import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from priors.action import ActionConstrained
-from priors.motion import ConstantVelocity
-from torchpf.camera import camera_ring
-from torchpf.filters import ParticleFilter
-from torchpf.likelihoods import OverlapLikelihood, SilhouetteLikelihood
-from torchpf.synth import synthesize
-from training.align import resample
+from priors.action import ActionProposal
+from priors.factories import action as action_prior
+from priors.factories import random_walk
+from torchpf import metrics
+from torchpf.tracker import Tracker
 from training.fit import ActionModelFitter
-from training.mocap import CMU_SCALE, bvh_motion, load_bvh, read_bvh
+from training.mocap import CMU_SCALE, bvh_motion, read_bvh
 
 CMU = Path(__file__).resolve().parents[1].parent / "shared" / "mocap" / "cmu"
-WALKS = ("07_01", "07_06", "08_09", "08_10", "16_21", "16_31", "35_02", "35_30")
+TRAIN = ("07_01", "07_06", "08_09", "08_10", "16_21", "16_31")
+PRIORS = ("random_walk", "rius", "soft", "proposal")
 
 
-def _posture_rmse_deg(estimates: torch.Tensor, truth: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
-    """(T,) RMS over the posture DOFs of the wrapped angle error, degrees."""
-    diff = torch.remainder(estimates[:, index] - truth[:, index] + math.pi, 2 * math.pi) - math.pi
-    return torch.rad2deg(diff.square().mean(-1).sqrt())
+def fit_walk_model(cmu: Path, fps: float, components, progress: bool = False):
+    """The walk model of subjects 07, 08, 16 and its fitter (``validation_curve_`` for ``"auto"``)."""
+    train = [bvh_motion(read_bvh(cmu / f"{c}.bvh"), CMU_SCALE)[1:] for c in TRAIN]
+    fitter = ActionModelFitter(n_components=components, action="walk", fps=fps, progress=progress).fit(train)
+    return fitter.model_, fitter
 
 
-def _track(pf, dyn, observations, x0, v0, alpha, velocity, generator):
-    """Run the filter frame by frame; returns estimates (T, D) and the mean share of particles eq. 6 accepts.
+def fit_run_model(cmu: Path, fps: float, components: int = 6, n_sigma: float = 4.0):
+    """A run model from the one run of a training subject (16_46); one performer: no validation."""
+    run = [bvh_motion(read_bvh(cmu / "16_46.bvh"), CMU_SCALE)[1:]]
+    return ActionModelFitter(n_components=components, n_sigma=n_sigma, action="run", fps=fps).fit(run).model_
 
-    ``velocity="estimate"`` is Rius' eq. 3: one velocity ``V_t = α V_{t-1} + (1-α)(φ̂_t - φ̂_{t-1})`` from the
-    MMSE estimates, given to every particle; ``"particle"`` keeps each particle's own smoothed velocity.
-    """
-    state = pf.init(x0, extras={"velocity": v0.expand_as(x0).clone()})
-    estimates, accepted, v = [x0[0]], [], v0
-    for obs in observations[1:]:
-        state = pf.step(state, obs, generator)
-        estimates.append(state.mean())
-        if isinstance(dyn, ActionConstrained):
-            accepted.append(float(state.extras["accepted"].float().mean()))
-        if velocity == "estimate":
-            v = alpha * v + (1 - alpha) * (estimates[-1] - estimates[-2])
-            state = state.replace(extras={"velocity": v.expand_as(state.particles).clone()})
-    return torch.stack(estimates), (float(np.mean(accepted)) if accepted else float("nan"))
+
+def recognise(seq, models, n: int, seed: int, filter_name: str, fps: float) -> tuple[list[str], dict]:
+    """Track ``seq`` with an :class:`priors.bank.ActionBank` of ``models``: per-frame action labels (argmax
+    of the posterior) and the figures of :func:`run_one`."""
+    from priors.bank import ActionBank
+
+    skel = seq.skeleton
+    bank = ActionBank(models, random_walk(skel, fps=fps), fps=fps, skeleton=skel)
+    tracker = Tracker(
+        skel, seq.cameras, dynamics=bank, filter=filter_name, n_particles=n, fps=fps, progress=False
+    )
+    result = tracker.track(str(seq.path), seed=seed)
+    truth, est = skel.fk(seq.angles.to(torch.float64)), skel.fk(result.angles)
+    labels = [bank.actions[int(i)] for i in result.stats["action_posterior"].argmax(-1)]
+    return labels, {"mpjpe_mm": 1000 * float(metrics.mpjpe(truth, est))}
+
+
+def build_prior(name: str, skel, model, fps: float):
+    """``(dynamics, proposal)`` of one prior for ``skel`` at ``fps``."""
+    if name == "random_walk":
+        return random_walk(skel, fps=fps), None
+    if name in ("rius", "soft"):
+        return action_prior(skel, model=model, fps=fps, mode=name), None
+    if name == "proposal":
+        dyn = random_walk(skel, fps=fps)
+        return dyn, ActionProposal(model, dyn, fps=fps, skeleton=skel)
+    raise ValueError(f"unknown prior {name!r}; choose from {PRIORS}")
+
+
+def run_one(seq, name: str, model, n: int, seed: int, filter_name: str, fps: float) -> dict[str, float]:
+    """Track ``seq`` (a :class:`benchmarks.foreign.ForeignSequence`) once; the figures of one cell."""
+    skel = seq.skeleton
+    dyn, proposal = build_prior(name, skel, model, fps)
+    tracker = Tracker(
+        skel, seq.cameras, dynamics=dyn, proposal=proposal, filter=filter_name, n_particles=n, fps=fps,
+        progress=False,
+    )  # fmt: skip
+    result = tracker.track(str(seq.path), seed=seed)
+    truth = skel.fk(seq.angles.to(torch.float64))
+    est = skel.fk(result.angles)
+    out = {
+        "mpjpe_mm": 1000 * float(metrics.mpjpe(truth, est)),
+        "failure": float(metrics.failure_rate(truth, est)),
+        "ess": float(result.ess.mean()),
+        "s_per_frame": result.seconds / len(result.angles),
+        "evaluations": tracker.likelihood_evaluations,
+    }
+    if "action_accepted" in result.stats:
+        out["accepted"] = float(result.stats["action_accepted"].float().mean())
+        out["fallback"] = float(result.stats["action_fallback"].float().mean())
+    return out
 
 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cmu", type=Path, default=CMU, help="folder of the CMU BVH clips")
-    ap.add_argument("--test", default="35_30", help="held-out walk clip")
-    ap.add_argument("--particles", type=int, nargs="+", default=[100, 300, 1000, 3000, 10000])
-    ap.add_argument("--frames", type=int, default=15, help="frames tracked (at --fps)")
-    ap.add_argument("--start", type=int, default=0, help="first frame of the test clip (at --fps)")
-    ap.add_argument("--fps", type=float, default=15.0, help="tracking and model frame rate (CMU: 120)")
-    ap.add_argument("--components", type=int, default=8, help="aSpace dimension D (Rius: 13)")
-    ap.add_argument("--cameras", type=int, default=3)
-    ap.add_argument("--size", type=int, nargs=2, default=[80, 60], metavar=("W", "H"))
-    ap.add_argument("--likelihood", choices=["silhouette", "overlap"], default="silhouette")
-    ap.add_argument("--sigma-scale", type=float, default=1.0, help="multiplies the fitted sigma_phi")
-    ap.add_argument(
-        "--velocity",
-        choices=["estimate", "particle"],
-        default="estimate",
-        help="velocity of eq. 3 from the MMSE estimates (Rius) or per particle",
-    )
-    ap.add_argument("--seeds", type=int, default=2)
+    ap.add_argument("--test", nargs="+", default=["35_30"], help="held-out clips (subject 35)")
+    ap.add_argument("--rw", type=int, nargs="+", default=[500, 2500, 10000], help="random-walk evaluations")
+    ap.add_argument("--learned", type=int, nargs="+", default=[500, 2000], help="learned-prior evaluations")
+    ap.add_argument("--priors", nargs="+", default=list(PRIORS[1:]), choices=PRIORS[1:])
+    ap.add_argument("--frames", type=int, default=30, help="frames tracked (at --fps)")
+    ap.add_argument("--fps", type=float, default=30.0, help="tracking and model frame rate")
+    ap.add_argument("--components", default="auto", help="aSpace dimension D or 'auto'")
+    ap.add_argument("--defects", default="noisy", help="foreign-renderer mask defects preset")
+    ap.add_argument("--filter", default="sir", help="filter (n_particles = evaluations per frame)")
+    ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
+    ap.add_argument(
+        "--bank",
+        nargs="*",
+        metavar="CLIP:ACTION",
+        help="also track these clips (e.g. 35_30:walk 35_24:run) with a walk + run ActionBank at the "
+        "smallest "
+        "--learned N and report how often the action posterior names the right action",
+    )
     args = ap.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
     if not args.cmu.is_dir():
         raise SystemExit(f"error: CMU clips not found at {args.cmu} (pass --cmu)")
+    from benchmarks.foreign import build_sequence
 
-    # ---------------------------------------------------------------------------------- action model
     t0 = time.perf_counter()
-    train = [bvh_motion(read_bvh(args.cmu / f"{s}.bvh"), CMU_SCALE)[1:] for s in WALKS if s != args.test]
-    fitter = ActionModelFitter(n_components=args.components, action="walk", fps=args.fps, alpha=0.5).fit(
-        train
-    )
-    model = fitter.model_
+    components = args.components if args.components == "auto" else int(args.components)
+    model, fitter = fit_walk_model(args.cmu, args.fps, components)
+    if fitter.validation_curve_ is not None:
+        print(fitter.validation_curve_.table())
     print(
-        f"action model: {len(train)} walks ({', '.join(m.name for m in train)}), D={model.n_components} "
-        f"({100 * float(model.explained_variance_ratio.sum()):.1f}% variance), "
-        f"K={model.n_postures} postures, "
-        f"alpha={model.alpha}, fit {time.perf_counter() - t0:.1f}s"
+        f"action model: walks {', '.join(TRAIN)} at {args.fps:g} fps: D={model.n_components}, "
+        f"n_sigma={model.n_sigma:g}, K={model.n_postures}; fit {time.perf_counter() - t0:.0f}s"
     )
-
-    # ---------------------------------------------------------------------------------- test sequence
-    skel, motion = load_bvh(args.cmu / f"{args.test}.bvh", CMU_SCALE)
-    if skel.dof_names != model.dof_names:
-        raise SystemExit("error: the test clip's DOFs differ from the training clips'")
-    angles = torch.from_numpy(resample(motion[1:].angles.numpy(), motion.fps, args.fps))
-    truth = angles[args.start : args.start + args.frames]
-    T = len(truth)
-    hips = skel.fk(truth)[:, skel.joint_names.index("Hips")]
-    centre = hips.mean(0).tolist()
-    rig = camera_ring(
-        args.cameras,
-        radius=5.0,
-        height=1.5,
-        target=(centre[0], centre[1], 0.9),
-        width=args.size[0],
-        height_px=args.size[1],
-        fov_deg=60.0,
-    )
-    seq = synthesize(skel, truth, rig, fps=args.fps, seed=0)
-    observations = [seq.frame(t) for t in range(T)]
-    joints = skel.joint_names
-    bones = [
-        c
-        for c, (_, child) in enumerate(skel.bones)
-        if not any(k in joints[child].lower() for k in ("finger", "thumb", "handindex"))
-    ]
-    Lik = SilhouetteLikelihood if args.likelihood == "silhouette" else OverlapLikelihood
-    likelihood = Lik(skel, rig, bones=bones, n_body=4, n_cap=1)  # 6 model points per capsule
-    truth_accept = float(model.accept_probability(truth).mean())
-    print(
-        f"test: {args.test} frames {args.start}..{args.start + T - 1} at {args.fps:g} fps "
-        f"({hips[-1].sub(hips[0]).norm():.2f} m walked), "
-        f"{args.cameras} cameras {args.size[0]}x{args.size[1]}, "
-        f"{type(likelihood).__name__} on {len(bones)} capsules; eq. 6 accepts the true poses with p="
-        f"{truth_accept:.2f}; torch threads {torch.get_num_threads()}"
-    )
-
-    # ---------------------------------------------------------------------------------- filters
-    sigma = model.sigma_phi * args.sigma_scale
-    index = model.posture_index
-    v0 = (angles[args.start + 1] - angles[args.start]) if T > 1 else torch.zeros_like(truth[0])
     rows = []
-    header = (
-        f"{'N':>6} | {'1st order: RMSE deg':>19} {'joints cm':>9} {'s/frame':>7} | "
-        f"{'+ action model: RMSE deg':>24} {'joints cm':>9} {'s/frame':>7} {'accepted':>8}"
-    )
-    print(header)
-    print("-" * len(header))
-    for n in args.particles:
-        result = {}
-        for name in ("plain", "action"):
-            base = ConstantVelocity(sigma, alpha=model.alpha)
-            dyn = base if name == "plain" else ActionConstrained(model, base)
-            pf = ParticleFilter(dyn, likelihood, n_particles=n, progress=False)
-            errs, cms, acc, secs = [], [], [], 0.0
-            for seed in range(args.seeds):
-                g = torch.Generator().manual_seed(1000 * seed + n)
-                t1 = time.perf_counter()
-                with torch.no_grad():
-                    x0 = truth[:1].expand(n, -1).clone()
-                    est, a = _track(pf, dyn, observations, x0, v0, model.alpha, args.velocity, g)
-                secs += (time.perf_counter() - t1) / max(T - 1, 1)
-                errs.append(_posture_rmse_deg(est, truth, index)[1:].mean())
-                cms.append((skel.fk(est) - skel.fk(truth)).norm(dim=-1).mean(-1)[1:].mean() * 100)
-                acc.append(a)
-            result[name] = (float(np.mean(errs)), float(np.mean(cms)), secs / args.seeds, float(np.mean(acc)))
-        (e0, c0, s0, _), (e1, c1, s1, a1) = result["plain"], result["action"]
-        rows.append((n, e0, c0, e1, c1))
-        print(f"{n:>6} | {e0:>19.2f} {c0:>9.2f} {s0:>7.2f} | {e1:>24.2f} {c1:>9.2f} {s1:>7.2f} {a1:>8.2f}")
-    print(
-        "RMSE: posture angles (66 DOFs, degrees); joints: mean 3D joint error; accepted: share of the "
-        "frame's particles that eq. 6 accepts"
-    )
-    if len(rows) > 1:
-        best_plain = rows[-1][1]
-        match = next((n for n, _, _, e1, _ in rows if e1 <= best_plain), None)
+    with tempfile.TemporaryDirectory() as tmp:
+        for clip in args.test:
+            seq = build_sequence(
+                args.cmu / f"{clip}.bvh", Path(tmp) / clip, defects=args.defects, fps=args.fps,
+                frames=args.frames,
+            )  # fmt: skip
+            accept = float(model.accept_probability(seq.angles.to(torch.float64)).mean())
+            print(
+                f"test {clip}: {len(seq.angles)} frames, {args.defects} masks; eq. 6 accepts the truth "
+                f"p={accept:.2f}"
+            )
+            # cheapest first, so that a run cut short has the comparison at small N
+            cells = sorted(
+                [("random_walk", n) for n in args.rw] + [(p, n) for p in args.priors for n in args.learned],
+                key=lambda cell: cell[1],
+            )
+            for name, n in cells:
+                runs = [run_one(seq, name, model, n, s, args.filter, args.fps) for s in range(args.seeds)]
+                mean = {k: float(np.mean([r[k] for r in runs])) for k in runs[0]}
+                rows.append((clip, name, n, mean))
+                extra = (
+                    f" accepted {100 * mean['accepted']:5.1f}% fallback {100 * mean['fallback']:5.1f}%"
+                    if "accepted" in mean
+                    else ""
+                )
+                print(
+                    f"{clip} {name:>11} N={n:>6}: MPJPE {mean['mpjpe_mm']:6.1f} mm  failure "
+                    f"{100 * mean['failure']:5.1f}%  ESS {mean['ess']:7.1f}  "
+                    f"{mean['s_per_frame']:.2f} s/frame" + extra,
+                    flush=True,
+                )
+    print()
+    print("| clip | prior | N | MPJPE (mm) | failure (%) | ESS | s/frame | accepted (%) | fallback (%) |")
+    print("|---|---|---:|---:|---:|---:|---:|---:|---:|")
+    for clip, name, n, m in rows:
+        acc = f"{100 * m['accepted']:.1f} | {100 * m['fallback']:.1f}" if "accepted" in m else "- | -"
         print(
-            f"plain filter with {rows[-1][0]} particles: {best_plain:.2f} deg; the action-constrained filter "
-            + (f"reaches it with {match} particles" if match else "does not reach it in this range")
+            f"| {clip} | {name} | {n} | {m['mpjpe_mm']:.1f} | {100 * m['failure']:.1f} | {m['ess']:.1f} | "
+            f"{m['s_per_frame']:.2f} | {acc} |"
         )
+    n0 = min(args.learned)
+    for clip in args.test:
+        learned = [
+            (m["mpjpe_mm"], name) for c, name, n, m in rows if c == clip and n == n0 and name != "random_walk"
+        ]
+        if not learned:
+            continue
+        best, which = min(learned)
+        rw = [(n, m["mpjpe_mm"]) for c, name, n, m in rows if c == clip and name == "random_walk"]
+        beaten = [n for n, e in rw if best <= e]
+        print(
+            f"{clip}: best learned prior at N={n0}: {which} {best:.1f} mm; the random walk is no better "
+            "up to " + (f"N={max(beaten)}" if beaten else f"none of N={[n for n, _ in rw]}")
+        )
+    if args.bank:
+        models = [model, fit_run_model(args.cmu, args.fps)]
+        n0 = min(args.learned)
+        with tempfile.TemporaryDirectory() as tmp:
+            for spec in args.bank:
+                clip, _, truth_action = spec.partition(":")
+                seq = build_sequence(
+                    args.cmu / f"{clip}.bvh", Path(tmp) / clip, defects=args.defects, fps=args.fps,
+                    frames=args.frames,
+                )  # fmt: skip
+                for s in range(args.seeds):
+                    labels, figures = recognise(seq, models, n0, s, args.filter, args.fps)
+                    right = float(np.mean([a == truth_action for a in labels]))
+                    print(
+                        f"bank walk+run on {clip} ({truth_action}), N={n0}, seed {s}: right action on "
+                        f"{100 * right:.0f}% of frames, MPJPE {figures['mpjpe_mm']:.1f} mm",
+                        flush=True,
+                    )
     print(f"total {time.perf_counter() - t0:.0f}s")
 
 

@@ -8,7 +8,9 @@
 * :mod:`priors.table5`: Fontmarty Table 5, the random-walk stds per joint group, mapped onto a skeleton.
 * :mod:`priors.proposals`: data-driven importance distributions ``SilhouetteGuided`` (Hauberg eq. 12),
   ``DepthGuided`` (Hauberg eq. 13-14) and the ``AngularRejection`` baseline (Hauberg eq. 4).
-* :mod:`priors.action`: the action model Γ = (Ω, ĝ, σ) and ``ActionConstrained`` dynamics (Rius eq. 1-6).
+* :mod:`priors.action`: the action model Γ = (Ω, ĝ, σ), ``ActionConstrained`` dynamics (Rius eq. 1-6, or
+  a soft prior) and the phase-advance importance distribution ``ActionProposal``.
+* :mod:`priors.bank`: ``ActionBank``, several action models with the action as a discrete particle state.
 
 Each motion prior is a :class:`torchpf.distributions.Dynamics` (an ``nn.Module``): ``sample(x, generator, *,
 extras)`` and ``log_prob(x_new, x_old, *, extras)`` where it is tractable, with no-op extras hooks unless it
@@ -28,6 +30,8 @@ _LAZY = {
     "AngularRejection": "priors.proposals",
     "ActionModel": "priors.action",
     "ActionConstrained": "priors.action",
+    "ActionProposal": "priors.action",
+    "ActionBank": "priors.bank",
 }
 
 

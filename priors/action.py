@@ -38,6 +38,11 @@ The test is random through ``j``; :meth:`ActionModel.accept_probability` is its 
 ``Σ_j p(j | φ̃) 1[φ̃ within n_sigma σ_j of ĝ_j]``. Only the projection is tested, as in the paper: how tight
 the filter is depends on ``D``.
 
+**Beyond rejection**: ``ActionConstrained(mode="soft")`` redraws with a soft prior (a Gaussian in aSpace
+around the matched posture, :meth:`ActionModel.soft_accept_probability`) instead of eq. 6's 0/1 test, and
+:class:`ActionProposal` predicts by phase advance along ĝ, as an importance distribution with its
+correction weight.
+
 **Action-constrained dynamics** (Rius eq. 3-5), :class:`ActionConstrained`: predict with the constant-velocity
 prior (eq. 3, :class:`priors.motion.ConstantVelocity`), then redraw every prediction the action model rejects
 until it is accepted (eq. 6), at most ``max_tries`` times.
@@ -74,7 +79,15 @@ import torch
 from torch import Tensor, nn
 
 from priors.motion import ConstantVelocity
-from torchpf.distributions import Dynamics, as_dynamics, flatten_batch, unflatten_batch, wrap_angle
+from torchpf.distributions import (
+    Dynamics,
+    as_dynamics,
+    diag_normal_log_prob,
+    flatten_batch,
+    randn_like,
+    unflatten_batch,
+    wrap_angle,
+)
 from torchpf.io import read_versioned_npz
 
 #: ``metadata["format"]`` of an action-model file.
@@ -325,6 +338,48 @@ class ActionModel(nn.Module):
         log_p, within = self._match(coords)
         return (log_p.exp() * within).sum(-1)
 
+    def _soft(self, coords: Tensor) -> tuple[Tensor, Tensor]:
+        """``log p(j | φ̃)`` and the soft acceptance ``exp(-½ ||(φ̃ - ĝ_j) / (n_sigma σ_j)||²)``, each
+        ``(..., K)``."""
+        log_p, _ = self._match(coords)
+        z = (coords.unsqueeze(-2) - self.mean_performance.to(coords)) / (self.n_sigma * self.std.to(coords))
+        return log_p, torch.exp(-0.5 * z.square().sum(-1))
+
+    def soft_accept_probability(self, theta: Tensor) -> Tensor:
+        """The soft prior: ``Σ_j p(j | φ̃) exp(-½ Σ_d ((φ̃_d - ĝ_{j,d}) / (n_sigma σ_{j,d}))²)`` ``(...)`` in
+        (0, 1]: a Gaussian in aSpace around the matched posture, of std ``n_sigma σ_j``, in place of eq. 6's
+        box of half-width ``n_sigma σ_j`` (:meth:`accept_probability`). Never exactly 0."""
+        log_p, soft = self._soft(self.project(theta))
+        return (log_p.exp() * soft).sum(-1)
+
+    def phase_step(self, theta: Tensor, postures: float) -> Tensor:
+        """Posture displacement of phase advance along ĝ: ``(..., D_full) -> (..., D_full)``.
+
+        Each pose is matched to its most likely mean posture ``k = argmax_j p(j | φ̃)`` and moved by the
+        mean performance's own change from ``ĝ_k`` to ``ĝ_{k + postures}`` (linear interpolation between
+        postures; modulo ``K`` for a cyclic action, clamped at the ends otherwise), mapped back to the pose
+        DOFs (``U^T (ĝ_{k+a} - ĝ_k)`` on the posture DOFs, 0 elsewhere). The pose keeps its own offset from
+        the mean, so a performer who walks differently is carried along the cycle, not pulled onto ĝ.
+        """
+        log_p, _ = self._match(self.project(theta))
+        k = log_p.argmax(-1).to(theta.dtype)
+        K = self.n_postures
+        target = k + float(postures)
+        g = self.mean_performance.to(theta)
+        if self.cyclic:
+            target = torch.remainder(target, K)
+            lo = target.floor().long() % K
+            hi = (lo + 1) % K
+        else:
+            target = target.clamp(0, K - 1)
+            lo = target.floor().long().clamp(0, K - 1)
+            hi = (lo + 1).clamp_max(K - 1)
+        w = (target - target.floor()).unsqueeze(-1)
+        ahead = (1 - w) * g[lo] + w * g[hi]
+        step = (ahead - g[k.long()]) @ self.components.to(theta)  # (..., P)
+        out = torch.zeros_like(theta)
+        return out.index_add(-1, self.posture_index, step)
+
     def accepts(self, theta: Tensor, generator: torch.Generator | None = None) -> Tensor:
         """Rius eq. 6: ``p(φ_t | Γ) ∈ {0, 1}`` per pose, ``(..., D_full) -> (...)`` bool.
 
@@ -333,12 +388,25 @@ class ActionModel(nn.Module):
         device.
         """
         log_p, within = self._match(self.project(theta))
+        return within.gather(-1, self._draw_match(log_p, generator)).squeeze(-1)
+
+    def accepts_soft(self, theta: Tensor, generator: torch.Generator | None = None) -> Tensor:
+        """The soft prior as a random test: draw ``j ~ p(j | φ̃)`` and accept with probability
+        ``exp(-½ ||(φ̃ - ĝ_j) / (n_sigma σ_j)||²)``; its expectation is :meth:`soft_accept_probability`, and
+        redrawing a prediction until it passes samples ``p(φ_t | φ_{t-1}) · soft(φ_t)``. ``(...)`` bool."""
+        log_p, soft = self._soft(self.project(theta))
+        keep = soft.gather(-1, self._draw_match(log_p, generator)).squeeze(-1)
+        u = torch.rand(keep.shape, generator=generator, dtype=keep.dtype, device=keep.device)
+        return u < keep
+
+    @staticmethod
+    def _draw_match(log_p: Tensor, generator: torch.Generator | None) -> Tensor:
+        """``j ~ p(j | φ̃)`` per pose (one uniform each, inverse CDF): ``(..., 1)`` long."""
         cdf = torch.cumsum(log_p.exp(), -1)
         u = torch.rand(cdf.shape[:-1] + (1,), generator=generator, dtype=cdf.dtype, device=cdf.device)
-        j = torch.searchsorted(cdf.contiguous(), (u * cdf[..., -1:]).contiguous()).clamp_max(
+        return torch.searchsorted(cdf.contiguous(), (u * cdf[..., -1:]).contiguous()).clamp_max(
             cdf.shape[-1] - 1
         )
-        return within.gather(-1, j).squeeze(-1)
 
     def _check_theta(self, theta: Tensor) -> None:
         if theta.ndim < 1 or theta.shape[-1] != len(self.dof_names):
@@ -391,6 +459,51 @@ class ActionModel(nn.Module):
                 f"DOFs {bad[:5]} are angles; refit the model with the skeleton"
             )
         return self
+
+    def truncated(self, n_components: int, n_sigma: float | None = None) -> ActionModel:
+        """This model on its first ``n_components`` aSpace dimensions (``self`` if that is all of them and
+        ``n_sigma`` is ``None`` or unchanged), with acceptance half-width ``n_sigma`` if given.
+
+        PCA coordinates are nested, so ĝ, σ_k and Δ of the smaller model are the leading columns of this one's
+        (under this model's synchronisation): how model selection scores every ``D`` from one fit.
+        """
+        d = int(n_components)
+        if not 1 <= d <= self.n_components:
+            raise ValueError(f"n_components must be in [1, {self.n_components}], got {n_components}")
+        n_sigma = self.n_sigma if n_sigma is None else float(n_sigma)
+        if d == self.n_components and n_sigma == self.n_sigma:
+            return self
+        training = self.training_data
+        if training is not None:
+            training = {**training, "coords": training["coords"][:, :d]}
+        return ActionModel(
+            **{
+                **self._init_kwargs(),
+                "components": self.components[:d],
+                "mean_performance": self.mean_performance[:, :d],
+                "std": self.std[:, :d],
+                "delta": self.delta[:d],
+                "explained_variance": self.explained_variance[:d],
+                "explained_variance_ratio": self.explained_variance_ratio[:d],
+                "training": training,
+                "n_sigma": n_sigma,
+            }
+        )
+
+    def at_fps(self, fps: float) -> ActionModel:
+        """This model for tracking at another frame rate (``self`` if equal): σ_φ and α rescaled by
+        :func:`priors.diffusion.at_rate` (the rule of the learned dynamics). The aSpace, ĝ, σ_k and Δ describe
+        postures, not time, and stay; a phase advances ``fps_model / fps`` postures per frame.
+
+        A model fitted at 120 fps and used at 30 fps without this diffuses 4x too little per frame: the
+        particles cannot follow the motion and the filter loses the person.
+        """
+        from priors.diffusion import at_rate
+
+        if math.isclose(float(fps), self.fps, rel_tol=1e-9):
+            return self
+        sigma_phi, alpha = at_rate(self.sigma_phi, self.alpha, self.fps, float(fps))
+        return ActionModel(**{**self._init_kwargs(), "sigma_phi": sigma_phi, "alpha": alpha, "fps": fps})
 
     def _init_kwargs(self) -> dict[str, Any]:
         return dict(
@@ -596,6 +709,16 @@ class ActionConstrained(Dynamics):
        after ``max_tries`` draws a particle keeps its last, unaccepted, draw, so a pose that has left the
        action is still tracked by the likelihood instead of freezing.
 
+    **Never worse than its plain dynamics.** A pose or a frame rate the model has not seen makes eq. 6 reject
+    nearly every prediction; redrawing then only burns tries and can pin the particles to the few accepted
+    ones. So where fewer than ``min_accept`` of a frame's first draws (per sequence of a batch) are accepted,
+    that frame keeps the first draws, i.e. samples the plain eq. 3 dynamics, warns once, and says so in the
+    filter's per-frame stats (:meth:`frame_stats`): ``action_accepted`` (share of the frame's particles
+    that eq. 6 can accept) and ``action_fallback`` (that share is below ``min_accept``), both ``(...)``,
+    stacked over time in ``Track.stats`` / ``TrackResult.stats``. A model fitted at another frame rate is
+    rescaled to the tracking rate when ``fps`` is given (:meth:`ActionModel.at_fps`; the ``action`` factory
+    passes the tracker's).
+
     The resulting transition density is ``p(φ_t | φ_{t-1}) p(φ_t | Γ) / Z(φ_{t-1})`` (eq. 5); its normaliser
     ``Z`` is intractable, so :meth:`log_prob` returns ``log p(φ_t | φ_{t-1}) + log P(accept | φ_t)``,
     unnormalised in ``φ_{t-1}`` (fine for ranking, not for importance corrections that need exact densities).
@@ -621,6 +744,13 @@ class ActionConstrained(Dynamics):
         skeleton: the particles' skeleton, if known: the model is put in its ``dof_names`` order and its
             angular posture DOFs are checked against ``skeleton.dof_revolute``
             (:meth:`ActionModel.check_revolute`).
+        mode: ``"rius"``: eq. 6's 0/1 test (:meth:`ActionModel.accepts`); ``"soft"``: the soft prior, a
+            Gaussian in aSpace around the matched posture (:meth:`ActionModel.accepts_soft`), so that the
+            redrawn predictions follow ``p(φ_t | φ_{t-1}) · soft(φ_t)``.
+        fps: tracking frame rate (Hz); the model's σ_φ and α are rescaled to it (:meth:`ActionModel.at_fps`).
+            ``None``: the model's rate.
+        min_accept: below this share of accepted first draws a frame falls back to the plain dynamics
+            (0 never falls back).
 
     Example::
 
@@ -638,12 +768,22 @@ class ActionConstrained(Dynamics):
         alpha: float | None = None,
         sigma_scale: float = 1.0,
         skeleton=None,
+        fps: float | None = None,
+        min_accept: float = 0.01,
+        mode: str = "rius",
     ):
         super().__init__()
+        if mode not in ("rius", "soft"):
+            raise ValueError(f"mode must be 'rius' (eq. 6's 0/1 test) or 'soft', got {mode!r}")
+        self.mode = mode
         if int(max_tries) < 1:
             raise ValueError(f"max_tries must be >= 1, got {max_tries}")
+        if not 0.0 <= float(min_accept) < 1.0:
+            raise ValueError(f"min_accept must be in [0, 1), got {min_accept}")
         if skeleton is not None:
             model = model.for_dof_names(skeleton.dof_names).check_revolute(skeleton.dof_revolute)
+        if fps is not None:
+            model = model.at_fps(fps)
         if dynamics is None:
             sigma = model.sigma_phi * float(sigma_scale)
             dynamics = ConstantVelocity(sigma, alpha=model.alpha if alpha is None else float(alpha))
@@ -652,6 +792,7 @@ class ActionConstrained(Dynamics):
         self.model = model
         self.dynamics = as_dynamics(dynamics)
         self.max_tries = int(max_tries)
+        self.min_accept = float(min_accept)
 
     def _accepted(self, x: Tensor) -> Tensor:
         """``(..., N)`` bool: eq. 6 can accept ``x`` (``P(accept | x) > 0``)."""
@@ -664,6 +805,12 @@ class ActionConstrained(Dynamics):
     def update_extras(self, x_new: Tensor, x_old: Tensor, extras: Mapping[str, Tensor]) -> dict[str, Tensor]:
         """The wrapped dynamics' update (Rius eq. 3's velocity smoothing) and ``"accepted"`` of ``x_new``."""
         return {**self.dynamics.update_extras(x_new, x_old, extras), "accepted": self._accepted(x_new)}
+
+    def frame_stats(self, x: Tensor, log_weights: Tensor, extras: Mapping[str, Tensor]) -> dict[str, Tensor]:
+        """``action_accepted`` (share of the frame's particles eq. 6 can accept) and ``action_fallback``
+        (that share below ``min_accept``: the frame ran on the plain dynamics), each ``(...)``."""
+        share = extras["accepted"].to(log_weights.dtype).mean(-1)
+        return {"action_accepted": share, "action_fallback": share < self.min_accept}
 
     def sample(
         self,
@@ -683,16 +830,29 @@ class ActionConstrained(Dynamics):
         extras: Mapping[str, Tensor] | None = None,
     ) -> tuple[Tensor, dict[str, Tensor]]:
         """Like :meth:`sample`, also returning the sampler's record per particle: ``(x_new (..., N, D),
-        {"accepted": (..., N) bool, "accepted_first": (..., N) bool, "tries": (..., N)})``.
+        {"fallback": (..., N) bool, "accepted": (..., N) bool, "accepted_first": (..., N) bool,
+        "tries": (..., N)})`` (``fallback``: the particle's frame fell back to the plain dynamics).
 
-        No host sync beyond the retry loop's "anything left?" check.
+        Host syncs: the fallback check and one "anything left?" per retry round.
         """
         # particles are independent, so all batch dims flatten to one (M, D)
         flat_x, batch = flatten_batch(x, 1)
         flat_extras = {k: flatten_batch(v, v.ndim - len(batch))[0] for k, v in (extras or {}).items()}
         out = self.dynamics.sample(flat_x, generator, extras=flat_extras)
-        ok = self.model.accepts(out, generator)
+        test = self.model.accepts if self.mode == "rius" else self.model.accepts_soft
+        ok = test(out, generator)
         first = ok.clone()
+        # a sequence whose first draws eq. 6 all but rejects falls back to them: the plain dynamics
+        share = unflatten_batch(ok, batch).to(x.dtype).mean(-1, keepdim=True)
+        fallback = (share < self.min_accept).expand(batch).reshape(-1)
+        if self.min_accept > 0 and bool(fallback.any()):
+            warnings.warn(
+                f"action model {self.model.action!r} accepts fewer than {self.min_accept:.0%} of the "
+                "predicted poses (an unseen pose or frame rate); those frames use its plain dynamics "
+                "(stats 'action_fallback')",
+                stacklevel=2,
+            )
+            ok = ok | fallback
         tries = torch.ones_like(ok, dtype=x.dtype)
         for _ in range(self.max_tries - 1):
             pending = (~ok).nonzero().squeeze(-1)  # one host sync per retry round, not per particle
@@ -700,11 +860,13 @@ class ActionConstrained(Dynamics):
                 break
             sub_extras = {k: v[pending] for k, v in flat_extras.items()}
             sub = self.dynamics.sample(flat_x[pending], generator, extras=sub_extras)
-            acc = self.model.accepts(sub, generator)
+            acc = test(sub, generator)
             out = out.index_copy(0, pending, sub)
             ok = ok.index_copy(0, pending, acc)
             tries = tries.index_add(0, pending, torch.ones_like(sub[:, 0]))
+        ok = ok & ~fallback
         stats = {
+            "fallback": unflatten_batch(fallback, batch),
             "accepted": unflatten_batch(ok, batch),
             "accepted_first": unflatten_batch(first, batch),
             "tries": unflatten_batch(tries, batch),
@@ -712,12 +874,110 @@ class ActionConstrained(Dynamics):
         return unflatten_batch(out, batch), stats
 
     def log_prob(self, x_new: Tensor, x_old: Tensor, *, extras: Mapping[str, Tensor] | None = None) -> Tensor:
-        """``log p(x_new | x_old) + log P(accept | x_new)`` ``(..., N)``, unnormalised in x_old (eq. 5)."""
+        """``log p(x_new | x_old) + log(m + (1 - m) P(accept | x_new))`` ``(..., N)`` with ``m = min_accept``,
+        unnormalised in x_old (eq. 5 for ``m = 0``).
+
+        The floor ``m`` is the fallback's share in the density: a pose eq. 6 rejects is ``1 / m`` times less
+        likely, not impossible (an annealed filter that weights its layers with the prior would otherwise
+        fail every frame of a pose the model has not seen).
+        """
         base = self.dynamics.log_prob(x_new, x_old, extras=extras)
-        return base + torch.log(self.model.accept_probability(x_new).to(base))
+        p = (
+            self.model.accept_probability(x_new)
+            if self.mode == "rius"
+            else self.model.soft_accept_probability(x_new)
+        )
+        p = p.to(base)
+        return base + torch.log(self.min_accept + (1.0 - self.min_accept) * p)
 
     def extra_repr(self) -> str:
-        return f"max_tries={self.max_tries}"
+        return f"mode={self.mode!r}, max_tries={self.max_tries}, min_accept={self.min_accept:g}"
+
+
+class ActionProposal(nn.Module):
+    """Importance distribution from an action model: phase advance along the synchronised mean performance.
+
+    ĝ is a trajectory, so the model can *predict*: a particle matched to posture ``k`` is moved by the mean
+    performance's own change from ``ĝ_k`` to ``ĝ_{k+a}``, ``a = fps_model / fps`` postures per frame
+    (:meth:`ActionModel.phase_step`, mapped back to the pose DOFs), plus Gaussian noise of the learned
+    per-DOF σ_φ (the constant-velocity residual, at the tracking rate) on the posture DOFs and the
+    dynamics' own std on the others (root). With probability ``beta`` a particle is drawn from the
+    dynamics instead, so the proposal covers what the model does not predict (another gait, a stop)::
+
+        q(x | x_{t-1}) = beta p(x | x_{t-1}) + (1 - beta) N(x; x_{t-1} + step(x_{t-1}), diag s²)
+
+    ``log_q`` is the exact mixture density, and the filter weights by ``p(x | x_{t-1}) / q(x | x_{t-1})``
+    (Hauberg eq. 2; the I-CONDENSATION correction of :mod:`torchpf.proposals`), so the estimate stays that
+    of the dynamics' model, only sampled where the action says the person goes. Follows the
+    ``sample(state, obs, generator) -> (x, log_q)`` protocol of :class:`torchpf.filters.ParticleFilter`.
+
+    Args:
+        model: the :class:`ActionModel`.
+        dynamics: the tracker's motion prior ``p`` (a :class:`Dynamics` with ``log_prob``); its ``std`` or
+            ``sigma`` is the noise of the non-posture DOFs.
+        fps: tracking rate (Hz); default the model's.
+        beta: share of draws from the dynamics, in [0, 1).
+        sigma_scale: multiplies the posture noise σ_φ.
+        skeleton: the particles' skeleton (puts the model in its DOF order).
+
+    Example::
+
+        dyn = make_dynamics("random_walk", skel, fps=30)
+        q = ActionProposal(ActionModel.load("walk.npz"), dyn, fps=30, skeleton=skel)
+        pf = ParticleFilter(dyn, likelihood, proposal=q, n_particles=500)
+    """
+
+    def __init__(
+        self,
+        model: ActionModel,
+        dynamics: Any,
+        *,
+        fps: float | None = None,
+        beta: float = 0.3,
+        sigma_scale: float = 1.0,
+        skeleton=None,
+    ):
+        super().__init__()
+        if not 0.0 <= float(beta) < 1.0:
+            raise ValueError(f"beta must be in [0, 1), got {beta}")
+        if skeleton is not None:
+            model = model.for_dof_names(skeleton.dof_names).check_revolute(skeleton.dof_revolute)
+        self.advance = 1.0 if fps is None else model.fps / float(fps)
+        model = model if fps is None else model.at_fps(fps)
+        self.model = model
+        self.dynamics = as_dynamics(dynamics)
+        std = getattr(self.dynamics, "std", None)
+        std = getattr(self.dynamics, "sigma", None) if std is None else std
+        if std is None:
+            raise ValueError("ActionProposal needs dynamics with a std (or sigma) for the non-posture DOFs")
+        noise = torch.as_tensor(std, dtype=torch.float64).expand(len(model.dof_names)).clone()
+        noise[model.posture_index] = model.sigma_phi[model.posture_index] * float(sigma_scale)
+        self.register_buffer("noise", noise.clamp_min(1e-6))
+        self.beta = float(beta)
+
+    def mean(self, x: Tensor) -> Tensor:
+        """Phase-advanced poses ``(..., N, D) -> (..., N, D)``."""
+        return x + self.model.phase_step(x, self.advance)
+
+    def sample(self, state: Any, obs: Any = None, generator: torch.Generator | None = None):
+        """``(x (..., N, D), log_q (..., N))`` from the parents ``state.particles`` (and their extras)."""
+
+        parents, extras = state.particles, state.extras
+        mu = self.mean(parents)
+        noise = self.noise.to(parents)
+        guided = mu + noise * randn_like(parents, generator)
+        plain = self.dynamics.sample(parents, generator, extras=extras)
+        u = torch.rand(parents.shape[:-1], generator=generator, dtype=parents.dtype, device=parents.device)
+        x = torch.where((u < self.beta).unsqueeze(-1), plain, guided)
+        log_guided = diag_normal_log_prob(x, mu, noise)
+        if self.beta == 0.0:
+            return x, log_guided
+        log_plain = self.dynamics.log_prob(x, parents, extras=extras).to(x.dtype)
+        log_q = torch.logaddexp(math.log(self.beta) + log_plain, math.log1p(-self.beta) + log_guided)
+        return x, log_q
+
+    def extra_repr(self) -> str:
+        return f"advance={self.advance:g} postures/frame, beta={self.beta:g}"
 
 
 def _json_default(obj):

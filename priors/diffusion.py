@@ -19,6 +19,7 @@ without geometry) gets 0: held still.
   DOF that moves a capsule) or explicit values; it logs :func:`sigma_summary` and warns when it guesses.
 * :data:`SPEEDS`, :data:`ANGULAR_SPEEDS` -- the default per-class speeds, measured on the CMU walks and runs
   (``/work/shared/mocap/cmu``, 11 clips at 120 fps).
+* :func:`at_rate` -- per-frame stds and α learned at one frame rate, at another.
 * :class:`LearnedDynamics` -- per-DOF step stds and the constant-velocity α (Rius eq. 3) learned from mocap
   (``python -m training fit-dynamics``), saved as a versioned ``.npz``; the ``learned`` factory
   (:func:`priors.factories.learned`) reads it.
@@ -317,6 +318,26 @@ def diffusion_sigma(
 
 # ------------------------------------------------------------------------------------- learned dynamics
 
+
+def at_rate(std, alpha, from_fps: float, to_fps: float):
+    """Per-frame motion statistics learned at ``from_fps`` as per-frame statistics at ``to_fps`` (Hz).
+
+    ``std (...)`` (rad / m per frame: step stds, constant-velocity prediction errors σ_φ) scale like a
+    speed, ``x (from_fps / to_fps)`` (:func:`priors.table5.rescale` with ``exponent=1``; on the CMU walks
+    the fitted step stds grow 1.9x from 120 to 60 fps and 3.4x to 30 fps); the velocity smoothing α of Rius
+    eq. 3 (a float or a per-DOF tensor) keeps its time constant, ``α ** (from_fps / to_fps)``. The one
+    rule for :class:`LearnedDynamics` and :class:`priors.action.ActionModel` alike.
+
+    Returns:
+        ``(std, alpha)`` at ``to_fps``.
+    """
+    from priors.table5 import rescale
+
+    if not (math.isfinite(float(to_fps)) and float(to_fps) > 0):
+        raise ValueError(f"fps must be > 0, got {to_fps}")
+    return rescale(std, to_fps, from_fps=from_fps, exponent=1.0), alpha ** (from_fps / to_fps)
+
+
 #: ``metadata["format"]`` of a learned-dynamics file.
 FORMAT = "torchpf-learned-dynamics"
 #: Current file-format version; files with a higher version are refused.
@@ -336,7 +357,8 @@ class LearnedDynamics:
         fps: frame rate (Hz) the statistics are per frame at.
         step_std: (D,) robust std of the frame steps ``θ_t - θ_{t-1}`` (``1.4826 · median |step|``), the
             random walk's std (rad / m per frame).
-        alpha: the constant-velocity smoothing α of Rius eq. 3 that minimises the squared prediction error.
+        alpha: the constant-velocity smoothing α of Rius eq. 3 that minimises the squared prediction error:
+            a float, or a ``(D,)`` tensor with one α per DOF (``fit-dynamics``' default, Rius §3.1 per DOF).
         cv_std: (D,) robust std of the constant-velocity prediction errors at ``alpha`` (Rius' σ_φ).
         revolute: (D,) bool, angles or distances.
         info: JSON-able provenance (source files, frames, robust estimator).
@@ -348,7 +370,7 @@ class LearnedDynamics:
     dof_names: list[str]
     fps: float
     step_std: torch.Tensor
-    alpha: float
+    alpha: float | torch.Tensor
     cv_std: torch.Tensor
     revolute: torch.Tensor
     info: dict = field(default_factory=dict)
@@ -365,30 +387,25 @@ class LearnedDynamics:
         for label, t in (("step_std", self.step_std), ("cv_std", self.cv_std)):
             if not torch.isfinite(t).all() or (t < 0).any():
                 raise ValueError(f"{label} must be finite and >= 0")
-        self.fps, self.alpha = float(self.fps), float(self.alpha)
+        self.fps = float(self.fps)
+        alpha = torch.as_tensor(np.asarray(self.alpha, dtype=np.float64)).clone()
+        if alpha.ndim not in (0, 1) or alpha.ndim == 1 and alpha.shape != (D,):
+            raise ValueError(f"alpha must be a float or ({D},) per DOF, got shape {tuple(alpha.shape)}")
+        self.alpha = float(alpha) if alpha.ndim == 0 else alpha
         if not (math.isfinite(self.fps) and self.fps > 0):
             raise ValueError(f"fps must be > 0, got {self.fps}")
-        if not 0.0 <= self.alpha <= 1.0:
+        if not ((alpha >= 0.0) & (alpha <= 1.0)).all():
             raise ValueError(f"alpha must be in [0, 1], got {self.alpha}")
 
     def at_fps(self, fps: float) -> LearnedDynamics:
-        """The statistics per frame at another rate: stds ``x (self.fps / fps)`` (steps of real motion scale
-        like a speed, see :data:`SPEEDS`; :func:`priors.table5.rescale` with ``exponent=1``) and
-        ``alpha ** (self.fps / fps)`` (the same smoothing time constant)."""
-        from priors.table5 import rescale
-
+        """The statistics per frame at another rate (:func:`at_rate`)."""
         if math.isclose(fps, self.fps, rel_tol=1e-9):
             return self
-        ratio = self.fps / fps
+        step_std, alpha = at_rate(self.step_std, self.alpha, self.fps, fps)
+        cv_std, _ = at_rate(self.cv_std, self.alpha, self.fps, fps)
         return LearnedDynamics(
-            self.dof_names,
-            fps,
-            rescale(self.step_std, fps, from_fps=self.fps, exponent=1.0),
-            self.alpha**ratio,
-            rescale(self.cv_std, fps, from_fps=self.fps, exponent=1.0),
-            self.revolute,
-            dict(self.info),
-        )
+            self.dof_names, fps, step_std, alpha, cv_std, self.revolute, dict(self.info)
+        )  # fmt: skip
 
     def select(self, dof_names, *, source: str = "learned dynamics") -> LearnedDynamics:
         """Reordered to ``dof_names`` (e.g. ``skel.dof_names``); other DOF names raise a ``ValueError``."""
@@ -404,7 +421,9 @@ class LearnedDynamics:
             )
         index = torch.tensor([self.dof_names.index(n) for n in want])
         return LearnedDynamics(
-            want, self.fps, self.step_std[index], self.alpha, self.cv_std[index], self.revolute[index],
+            want, self.fps, self.step_std[index],
+            self.alpha if isinstance(self.alpha, float) else self.alpha[index],
+            self.cv_std[index], self.revolute[index],
             dict(self.info),
         )  # fmt: skip
 
@@ -415,7 +434,7 @@ class LearnedDynamics:
             "version": FORMAT_VERSION,
             "dof_names": self.dof_names,
             "fps": self.fps,
-            "alpha": self.alpha,
+            "alpha": self.alpha if isinstance(self.alpha, float) else self.alpha.tolist(),
             "info": self.info,
         }
         buffer = io.BytesIO()

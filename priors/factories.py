@@ -9,7 +9,8 @@ group declared in ``pyproject.toml``. Each factory is ``factory(skeleton, **opti
   ``stds="table5"`` (Fontmarty Table 5 by joint names, :mod:`priors.table5`), or explicit ``(D,)`` values.
 * ``constant_velocity``: Rius eq. 3 (:class:`priors.motion.ConstantVelocity`), diffusion as ``random_walk``.
 * ``damped``: Brubaker eq. 13 (:class:`priors.motion.DampedSecondOrder`), diffusion as ``random_walk``.
-* ``action``: the action-constrained dynamics of Rius eq. 3 + 6 from a saved action model (``model=path``).
+* ``action``: the action-constrained dynamics of Rius eq. 6 from a saved action model (``model=path``),
+  constraining the structural random walk (``base="rius"``: the model's constant velocity, eq. 3).
 * ``learned``: stds (and α) learned from mocap by ``python -m training fit-dynamics`` (``path=dyn.npz``,
   :class:`priors.diffusion.LearnedDynamics`): a random walk, or Rius eq. 3 with ``model="constant_velocity"``.
 
@@ -67,11 +68,37 @@ def damped(
     return DampedSecondOrder(sigma, kappa=kappa, **options)
 
 
-def action(skeleton, *, model, **options):
-    """Action-constrained dynamics (Rius eq. 3 + 6) from an action model file (``.npz``) or object."""
+def action(
+    skeleton,
+    *,
+    model,
+    fps: float | None = None,
+    base: str = "random_walk",
+    stds="structural",
+    scale: float = 1.0,
+    **options,
+):
+    """Action-constrained dynamics (Rius eq. 6) from an action model file (``.npz``) or object.
+
+    Args:
+        skeleton: the tracked skeleton (the model is put in its DOF order; joint types checked).
+        model: the ``.npz`` file or an :class:`ActionModel`.
+        fps: tracking frame rate; the model's σ_φ and α are rescaled to it (:meth:`ActionModel.at_fps`).
+        base: the dynamics eq. 6 constrains, which is also what a frame the model rejects falls back to:
+            ``"random_walk"`` (default: :func:`random_walk` with ``stds`` and ``scale``, what the tracker
+            uses without a prior, so the prior is never worse than none) or ``"rius"`` (eq. 3, the model's
+            constant velocity with its σ_φ and α, as in the paper).
+        **options: :class:`ActionConstrained` keywords (``max_tries``, ``min_accept``, ``alpha``, ...).
+    """
     if not isinstance(model, ActionModel):
         model = ActionModel.load(model, dof_names=skeleton.dof_names)
-    return ActionConstrained(model, **options)
+    if base == "random_walk":
+        options["dynamics"] = random_walk(skeleton, stds=stds, fps=fps, scale=scale)
+    elif base == "rius":
+        options.setdefault("sigma_scale", scale)
+    else:
+        raise ValueError(f"base must be 'random_walk' or 'rius', got {base!r}")
+    return ActionConstrained(model, skeleton=skeleton, fps=fps, **options)
 
 
 def learned(

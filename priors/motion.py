@@ -120,6 +120,7 @@ class _VelocityDynamics(Dynamics):
         """
         a = self._blend()
         v = self._velocity(x_old, extras)
+        a = a.to(v) if isinstance(a, Tensor) else a
         out = dict(extras or {})
         out["velocity"] = a * v + (1.0 - a) * (x_new - x_old) / self.dt
         return out
@@ -146,8 +147,8 @@ class ConstantVelocity(_VelocityDynamics):
     Args:
         sigma: diffusion std σ_φ per frame step, scalar or ``(D,)`` (radians / metres). It does *not* scale
             with ``dt``. DOFs with σ = 0 move deterministically and are left out of :meth:`log_prob`.
-        alpha: learning coefficient α in [0, 1] (Rius uses 0.5): 0 keeps only the last difference, 1 never
-            updates the velocity.
+        alpha: learning coefficient α in [0, 1] (Rius uses 0.5), a float or ``(D,)`` per DOF: 0 keeps only
+            the last difference, 1 never updates the velocity.
         dt: time unit of the velocity. With the default 1.0 the velocity is in state units *per frame*; with
             ``dt = 1 / fps`` it is in units per second (same predictions, the velocity is just rescaled).
 
@@ -157,17 +158,19 @@ class ConstantVelocity(_VelocityDynamics):
         state = ParticleFilter(cv, likelihood, n_particles=500).init(x0)    # extras from cv.init_extras
     """
 
-    def __init__(self, sigma, *, alpha: float = 0.5, dt: float = 1.0):
+    def __init__(self, sigma, *, alpha: float | Tensor = 0.5, dt: float = 1.0):
         super().__init__(sigma, dt=dt)
-        if not 0.0 <= alpha <= 1.0:
-            raise ValueError(f"alpha must be in [0, 1], got {alpha}")
-        self.alpha = float(alpha)
+        a = torch.as_tensor(alpha, dtype=torch.float64)
+        if a.ndim > 1 or not ((a >= 0.0) & (a <= 1.0)).all():
+            raise ValueError(f"alpha must be in [0, 1] (a float or one per DOF), got {alpha}")
+        self.alpha = float(a) if a.ndim == 0 else a.clone()  # per DOF: Rius §3.1 fitted per DOF
 
-    def _blend(self) -> float:
+    def _blend(self) -> float | Tensor:
         return self.alpha
 
     def extra_repr(self) -> str:
-        return f"{super().extra_repr()}, alpha={self.alpha}"
+        a = self.alpha
+        return f"{super().extra_repr()}, alpha={a if isinstance(a, float) else f'(D={a.shape[0]})'}"
 
 
 class DampedSecondOrder(_VelocityDynamics):

@@ -261,6 +261,12 @@ def _track(args) -> int:
         from torchpf.sequence import format_frames
 
         print(f"frames without evidence (no usable mask, point or keypoint): {format_frames(blind)}")
+    if "action_fallback" in result.stats:  # a learned prior says when it gave up on the sequence
+        fell, accepted = result.stats["action_fallback"], result.stats["action_accepted"]
+        print(
+            f"action prior: accepted {100 * float(accepted.float().mean()):.0f}% of the particles; fell back "
+            f"to its plain dynamics on {int(fell.sum())} of {fell.numel()} frames"
+        )
     if seq.truth is not None:
         from torchpf import metrics
 

@@ -118,7 +118,8 @@ class Dynamics(nn.Module):
     * ``sample_from_noise(x, eps, *, extras)``: the deterministic map of standard-normal noise
       ``eps (..., N, noise_dim)`` to a sample, for quasi-Monte-Carlo sampling (Fontmarty Table 4).
     * ``init_extras(x0)`` -> the extras of the initial particles; ``update_extras(x_new, x_old, extras)`` ->
-      the extras once a frame's particles are final (``x_old`` is each particle's frame-start parent).
+      the extras once a frame's particles are final (``x_old`` is each particle's frame-start parent);
+      ``frame_stats(x, log_weights, extras)`` -> per-frame diagnostics for ``Track.stats``.
 
     ``extras`` is the mapping of the parents' extras (empty for a model that keeps none).
     """
@@ -144,6 +145,11 @@ class Dynamics(nn.Module):
 
     def update_extras(self, x_new: Tensor, x_old: Tensor, extras: Mapping[str, Tensor]) -> dict[str, Tensor]:
         return dict(extras)
+
+    def frame_stats(self, x: Tensor, log_weights: Tensor, extras: Mapping[str, Tensor]) -> dict[str, Tensor]:
+        """Per-frame diagnostics ``{name: (...)}`` from a frame's final particles ``x (..., N, D)``, weights
+        ``(..., N)`` and extras; the filters add them to ``state.info`` (and ``Track.stats``). None here."""
+        return {}
 
     def noise_size(self, state_dim: int) -> int:
         """Dimension of the noise :meth:`sample_from_noise` expects (``noise_dim``, default ``D``)."""
@@ -185,6 +191,10 @@ class _DuckDynamics(Dynamics):
 
     def update_extras(self, x_new, x_old, extras):
         return dict(self.inner.update_extras(x_new, x_old, extras)) if self._stateful else dict(extras)
+
+    def frame_stats(self, x, log_weights, extras):
+        fn = getattr(self.inner, "frame_stats", None)
+        return dict(fn(x, log_weights, extras)) if fn is not None else {}
 
     def __getattr__(self, name):
         try:

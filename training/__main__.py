@@ -4,7 +4,7 @@ Commands::
 
     python -m training convert FILE.bvh --scale S --out-dir DIR    # -> DIR/skeleton.urdf + DIR/FILE.csv
     python -m training fit --action walk --skeleton S.urdf --out walk.npz DATA/*.csv
-    python -m training inspect walk.npz --out DIR                  # -> DIR/synchronisation.png, ...
+    python -m training inspect walk.npz --out DIR                  # -> DIR/synchronisation.png, ...; curve
     python -m training fit-dynamics DATA/*.csv --skeleton S.urdf --out dyn.npz [--fps 30]
     python -m training export TRACK.csv --skeleton S.urdf --out track.bvh [--scale S]
 
@@ -63,8 +63,10 @@ def _convert(args: argparse.Namespace) -> int:
     return 0
 
 
-def _components(text: str) -> int | float:
-    """``--components``: an int >= 1 (count) or a float in (0, 1) (fraction of variance)."""
+def _components(text: str) -> int | float | str:
+    """``--components``: ``auto``, an int >= 1 (count) or a float in (0, 1) (fraction of variance)."""
+    if text == "auto":
+        return text
     try:
         value: int | float = int(text)
     except ValueError:
@@ -97,7 +99,9 @@ def _fit(args: argparse.Namespace) -> int:
         if args.skip_first:
             motion = motion[args.skip_first :]
         motions.append(motion)
+    negatives = [load_csv(p, dof_names=dof_names)[args.skip_first :] for p in args.negatives or []]
     fitter = ActionModelFitter(
+        negatives=negatives or None,
         n_components=args.components,
         action=args.action,
         fps=args.fps,
@@ -113,6 +117,8 @@ def _fit(args: argparse.Namespace) -> int:
     ).fit(motions, skeleton=skeleton)
     model = fitter.model_
     model.save(args.out)
+    if fitter.validation_curve_ is not None:
+        print(fitter.validation_curve_.table())
     rate = fitter.train_acceptance_  # how often eq. 6 accepts the training frames themselves
     print(
         f"wrote {args.out}: action {args.action!r} from {len(motions)} performances, "
@@ -139,12 +145,24 @@ def _inspect(args: argparse.Namespace) -> int:
     check_output_dir(args.out)
     model = ActionModel.load(args.model)
     print(describe(model))
+    curve = (model.training_data or {}).get("info", {}).get("validation")
+    if curve:
+        from training.fit import ValidationCurve
+
+        print(ValidationCurve.from_dict(curve).table())
     paths = [
         plot_synchronisation(model, args.out, n_dims=args.dims),
         plot_explained_variance(model, args.out),
     ]
     print("wrote " + ", ".join(str(p) for p in paths))
     return 0
+
+
+def _alpha_text(alpha) -> str:
+    """A scalar α, or the range of per-DOF ones."""
+    if isinstance(alpha, float):
+        return f"{alpha:.3g}"
+    return f"{float(alpha.min()):.3g}..{float(alpha.max()):.3g} per DOF (median {float(alpha.median()):.3g})"
 
 
 def _fit_dynamics(args: argparse.Namespace) -> int:
@@ -162,7 +180,7 @@ def _fit_dynamics(args: argparse.Namespace) -> int:
     stats.save(args.out)
     print(
         f"wrote {args.out}: {len(stats.dof_names)} DOFs from {len(args.files)} files "
-        f"({stats.info['frames']} frames) at {stats.fps:g} fps, alpha={stats.alpha:.3g}"
+        f"({stats.info['frames']} frames) at {stats.fps:g} fps, alpha={_alpha_text(stats.alpha)}"
     )
     print(sigma_summary(skeleton, stats.step_std, fps=stats.fps, source="learned"))
     return 0
@@ -226,9 +244,16 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument(
         "--components",
         type=_components,
-        default=13,
+        default="auto",
         metavar="D",
-        help="aSpace dimensions: a count (default 13, as Rius) or a variance fraction such as 0.9",
+        help="aSpace dimensions: 'auto' (default: leave-one-performer-out validation, also of n_sigma), a "
+        "count (13 as Rius) or a variance fraction such as 0.9",
+    )
+    fit.add_argument(
+        "--negatives",
+        nargs="+",
+        metavar="OTHER.csv",
+        help="performances of other actions the model must reject (scored by --components auto)",
     )
     fit.add_argument("--fps", type=_positive_float, help="model frame rate; default: the files' rate")
     fit.add_argument(
@@ -251,7 +276,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="leave DOFs matching REGEX out of the posture (repeatable; replaces the default "
         "hand|finger|thumb)",
     )
-    fit.add_argument("--n-sigma", type=_positive_float, default=2.0, help="acceptance width in sigma (2)")
+    fit.add_argument(
+        "--n-sigma", type=_positive_float, default=2.0, help="acceptance width in sigma (2; auto: validated)"
+    )
     fit.add_argument("--alpha", type=float, help="fix the velocity smoothing alpha instead of fitting it")
     fit.add_argument("--max-iter", type=int, default=30, help="most synchronisation iterations (30)")
     fit.add_argument(

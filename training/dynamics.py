@@ -13,9 +13,9 @@ as a :class:`priors.diffusion.LearnedDynamics` (saved as a versioned ``.npz``):
    Euler-angle flips and marker glitches of real mocap). About 0 rather than about the median step because
    a random walk must cover the whole step, drift (walking forward) included.
 3. *Constant velocity* (Rius eq. 3, :class:`priors.motion.ConstantVelocity`): α minimises the squared
-   prediction error of ``φ̂_{t+1} = φ_t + V_t``, ``V_t = α V_{t-1} + (1 - α) δ_t`` over all DOFs and
-   performances (:func:`training.fit.fit_alpha`, the action-model fitter's rule), and ``cv_std`` is the
-   robust std of those prediction errors at α.
+   prediction error of ``φ̂_{t+1} = φ_t + V_t``, ``V_t = α V_{t-1} + (1 - α) δ_t``, per DOF (Rius §3.1,
+   ``per_dof=True``) or over all DOFs, and ``cv_std`` is the robust std of those prediction errors at α
+   (:func:`cv_statistics`, also the action-model fitter's σ_φ: one home for both).
 
 :func:`class_speeds` measures, per body-part class, the speed of the farthest capsule point a DOF drives
 and the angular speed of its revolute DOFs: how :data:`priors.diffusion.SPEEDS` and
@@ -36,11 +36,12 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from scipy.optimize import minimize_scalar
+from scipy.signal import lfilter
 
 from priors.action import guess_revolute
 from priors.diffusion import LearnedDynamics, dof_classes, lever_arms
 from training.align import resample
-from training.fit import constant_velocity_errors, fit_alpha
 from training.mocap import Motion
 
 #: Consistency factor of the median absolute deviation for a normal distribution.
@@ -50,6 +51,67 @@ MAD_TO_STD = 1.4826
 def robust_std(x: np.ndarray, axis: int = 0) -> np.ndarray:
     """``1.4826 · median |x|`` along ``axis``: the std of zero-mean normal data, robust to outliers."""
     return MAD_TO_STD * np.median(np.abs(x), axis) if x.shape[axis] else np.zeros(np.delete(x.shape, axis))
+
+
+def constant_velocity_errors(deltas: np.ndarray, alpha) -> np.ndarray:
+    """Prediction errors of Rius eq. 3 along one performance.
+
+    Args:
+        deltas: ``(T-1, D)`` frame differences ``φ_t - φ_{t-1}``.
+        alpha: velocity smoothing α, a float or ``(D,)`` per DOF.
+
+    Returns:
+        ``(T-2, D)`` errors ``e_{t+1} = (φ_{t+1} - φ_t) - V_t`` with ``V_t = α V_{t-1} + (1-α) δ_t``,
+        ``V`` started at the first difference.
+    """
+    if deltas.shape[0] < 2:
+        return np.zeros((0, deltas.shape[1]))
+    alpha = np.asarray(alpha, dtype=float)
+    if alpha.ndim == 0:
+        v = lfilter([1.0 - alpha], [1.0, -alpha], deltas, axis=0, zi=alpha * deltas[:1])[0]
+    else:  # one filter per DOF
+        v = np.stack(
+            [
+                lfilter([1.0 - a], [1.0, -a], deltas[:, d], zi=[a * deltas[0, d]])[0]
+                for d, a in enumerate(alpha)
+            ],
+            axis=1,
+        )
+    return deltas[1:] - v[:-1]
+
+
+def fit_alpha(deltas: Sequence[np.ndarray], *, per_dof: bool = False):
+    """Rius eq. 3's α: the velocity smoothing in ``[0, 0.999]`` that minimises the squared prediction error
+    ``Σ ||constant_velocity_errors(δ, α)||²`` over performances.
+
+    Args:
+        deltas: per performance, ``(T_r - 1, D)`` frame differences of the DOFs that count.
+        per_dof: one α per DOF (``(D,)`` array, each minimising its own DOF's error: Rius §3.1 per DOF;
+            a grid of 0.001 steps) instead of one for all (a float, bounded scalar least squares).
+    """
+    if per_dof:
+        grid = np.linspace(0.0, 0.999, 1000)
+        losses = np.stack(
+            [sum(np.sum(constant_velocity_errors(d, a) ** 2, 0) for d in deltas) for a in grid[::10]]
+        )  # coarse pass, then a fine one around each DOF's best
+        best = grid[::10][np.argmin(losses, 0)]
+        fine = np.clip(best[None, :] + np.linspace(-0.01, 0.01, 21)[:, None], 0.0, 0.999)
+        losses = np.stack([sum(np.sum(constant_velocity_errors(d, a) ** 2, 0) for d in deltas) for a in fine])
+        return fine[np.argmin(losses, 0), np.arange(fine.shape[1])]
+
+    def loss(alpha: float) -> float:
+        return float(sum(np.sum(constant_velocity_errors(d, alpha) ** 2) for d in deltas))
+
+    return float(minimize_scalar(loss, bounds=(0.0, 0.999), method="bounded").x)
+
+
+def cv_statistics(deltas: Sequence[np.ndarray], alpha=None, *, per_dof: bool = False):
+    """Rius eq. 3 fitted to frame differences: ``(alpha, cv_std)`` with ``alpha`` from :func:`fit_alpha`
+    (unless given) and ``cv_std (D,)`` the robust std (:func:`robust_std`) of the prediction errors at it;
+    the one rule for the action models' σ_φ and the learned dynamics."""
+    a = fit_alpha(deltas, per_dof=per_dof) if alpha is None else alpha
+    errors = np.concatenate([constant_velocity_errors(d, a) for d in deltas])
+    return a, robust_std(errors)
 
 
 def _tracks(motions: Sequence[Motion], revolute: np.ndarray, fps: float) -> list[np.ndarray]:
@@ -68,6 +130,7 @@ def fit_dynamics(
     skeleton=None,
     fps: float | None = None,
     alpha: float | None = None,
+    per_dof: bool = True,
 ) -> LearnedDynamics:
     """Learn per-DOF step stds and the constant-velocity α from performances (module docstring).
 
@@ -79,6 +142,7 @@ def fit_dynamics(
             :func:`priors.action.guess_revolute`).
         fps: rate (Hz) of the statistics; ``None``: the performances' median rate.
         alpha: fix α instead of fitting it.
+        per_dof: fit one α per DOF (default; Rius §3.1 per DOF) rather than one for all.
 
     Returns:
         :class:`priors.diffusion.LearnedDynamics` (``.save(path)`` writes it).
@@ -102,14 +166,13 @@ def fit_dynamics(
     steps = np.concatenate(deltas)
     if len(steps) < 2:
         raise ValueError(f"the performances have fewer than 3 frames at {rate:g} fps; need more data")
-    a = fit_alpha(deltas) if alpha is None else float(alpha)
-    errors = np.concatenate([constant_velocity_errors(d, a) for d in deltas])
+    a, cv_std = cv_statistics(deltas, alpha, per_dof=per_dof)
     info = {
         "performances": [m.name or f"performance {i}" for i, m in enumerate(motions)],
         "frames": int(len(steps) + len(deltas)),
         "estimator": "1.4826 * median |x| (x: frame steps; constant-velocity prediction errors)",
     }
-    return LearnedDynamics(names, rate, robust_std(steps), a, robust_std(errors), revolute, info)
+    return LearnedDynamics(names, rate, robust_std(steps), a, cv_std, revolute, info)
 
 
 def class_speeds(

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from priors.action import ActionConstrained, ActionModel, ActionModelFormatError
+from priors.action import ActionConstrained, ActionModel, ActionModelFormatError, ActionProposal
 from priors.motion import ConstantVelocity
 from torchpf.distributions import Dynamics
 from torchpf.filters import ParticleFilter
@@ -253,7 +253,7 @@ def test_action_constrained_follows_the_stateful_protocol_and_reports_acceptance
     assert extras["accepted"].shape == (2, 200) and extras["accepted"].dtype == torch.bool
     out, stats = dyn.sample_with_stats(x, torch.Generator().manual_seed(0), extras=extras)
     assert out.shape == x.shape and torch.isfinite(out).all()
-    assert set(stats) == {"accepted", "accepted_first", "tries"}
+    assert set(stats) == {"fallback", "accepted", "accepted_first", "tries"}
     assert all(v.shape == (2, 200) for v in stats.values()) and stats["accepted"].dtype == torch.bool
     accepted, first = stats["accepted"].float().mean(-1), stats["accepted_first"].float().mean(-1)
     assert (accepted >= first).all() and (accepted > 0.95).all()
@@ -269,7 +269,7 @@ def test_action_constrained_follows_the_stateful_protocol_and_reports_acceptance
 
 def test_action_constrained_retries_are_bounded():
     model = tiny_model(std=torch.full((4, 2), 1e-6))  # accepts (almost) nothing
-    dyn = ActionConstrained(model, max_tries=3)
+    dyn = ActionConstrained(model, max_tries=3, min_accept=0.0)  # the paper's eq. 6, no fallback
     x = near_mean_poses(model, 50, 0.3)
     out, stats = dyn.sample_with_stats(x, torch.Generator().manual_seed(0), extras=dyn.init_extras(x))
     assert not stats["accepted"].any() and (stats["tries"] == 3).all()
@@ -278,12 +278,67 @@ def test_action_constrained_retries_are_bounded():
 
 def test_action_constrained_log_prob_adds_log_acceptance():
     model = tiny_model()
-    dyn = ActionConstrained(model)
+    dyn = ActionConstrained(model, min_accept=0.0)
     x_old = near_mean_poses(model, 30, 0.05)
     extras = {"velocity": 0.01 * torch.ones_like(x_old)}
     x_new = dyn.sample(x_old, torch.Generator().manual_seed(2), extras=extras)
     expected = dyn.dynamics.log_prob(x_new, x_old, extras=extras) + model.accept_probability(x_new).log()
     torch.testing.assert_close(dyn.log_prob(x_new, x_old, extras=extras), expected)
+    # with a fallback share m, a rejected pose is 1/m times less likely, never impossible
+    floored = ActionConstrained(model, min_accept=0.01)
+    far = x_new + 5.0
+    lp = floored.log_prob(far, x_old, extras=extras)
+    assert torch.isfinite(lp).all()
+    torch.testing.assert_close(lp, dyn.dynamics.log_prob(far, x_old, extras=extras) + math.log(0.01))
+
+
+def test_a_model_that_rejects_everything_falls_back_to_its_plain_dynamics_and_says_so():
+    model = tiny_model(std=torch.full((4, 2), 1e-6))  # accepts (almost) nothing
+    dyn = ActionConstrained(model, max_tries=5, min_accept=0.05)
+    x = near_mean_poses(model, 120, 0.3).reshape(2, 60, len(NAMES))
+    extras = dyn.init_extras(x)
+    with pytest.warns(UserWarning, match="plain dynamics"):
+        out, stats = dyn.sample_with_stats(x, torch.Generator().manual_seed(0), extras=extras)
+    # the frame's draws are the plain dynamics' first draws: one try each, same as sampling it directly
+    assert stats["fallback"].all() and (stats["tries"] == 1).all() and not stats["accepted"].any()
+    plain = dyn.dynamics.sample(
+        x.reshape(-1, len(NAMES)),
+        torch.Generator().manual_seed(0),
+        extras={k: v.reshape(-1, v.shape[-1]) for k, v in extras.items()},
+    )
+    torch.testing.assert_close(out.reshape(-1, len(NAMES)), plain)
+    stats = dyn.frame_stats(out, torch.zeros(2, 60), dyn.update_extras(out, x, extras))
+    assert stats["action_fallback"].tolist() == [True, True] and (stats["action_accepted"] == 0).all()
+
+
+def test_fallback_and_acceptance_reach_the_track_stats_of_every_filter():
+    from torchpf.filters import AnnealedParticleFilter
+
+    model = tiny_model(std=torch.full((4, 2), 1e-6))
+    dyn = ActionConstrained(model, min_accept=0.05)
+    truth = near_mean_poses(model, 1, 0.0)[0]
+
+    def likelihood(x, obs):
+        return -0.5 * ((x - obs) ** 2).sum(-1) / 0.1**2
+
+    for pf in (
+        ParticleFilter(dyn, likelihood, n_particles=100, progress=False),
+        AnnealedParticleFilter(dyn, likelihood, n_particles=100, progress=False, diffusion_std=0.01),
+    ):
+        with pytest.warns(UserWarning, match="plain dynamics"):
+            track = pf.run([truth] * 3, truth.expand(100, -1).clone(), generator=0)
+        assert track.stats["action_fallback"].tolist() == [True] * 3
+        assert not track.failed.any() and torch.isfinite(track.estimates).all()
+
+
+def test_a_model_fitted_at_another_frame_rate_is_rescaled_to_the_tracking_rate():
+    model = tiny_model(fps=120.0, alpha=0.8)
+    at30 = model.at_fps(30.0)
+    torch.testing.assert_close(at30.sigma_phi, model.sigma_phi * 4.0)
+    assert math.isclose(at30.alpha, 0.8**4) and at30.fps == 30.0 and model.at_fps(120.0) is model
+    torch.testing.assert_close(at30.mean_performance, model.mean_performance)
+    dyn = ActionConstrained(model, fps=30.0)
+    torch.testing.assert_close(dyn.dynamics.sigma, model.sigma_phi * 4.0)
 
 
 def test_action_constrained_runs_in_a_particle_filter():
@@ -369,10 +424,72 @@ def test_action_constrained_adapts_a_duck_typed_dynamics_once():
             return torch.zeros(x_new.shape[:-1], dtype=x_new.dtype)
 
     model = tiny_model()
-    dyn = ActionConstrained(model, Walk())
+    dyn = ActionConstrained(model, Walk(), min_accept=0.0)
     x = near_mean_poses(model, 20, 0.02)
     extras = dyn.init_extras(x)
     assert set(extras) == {"accepted"}
     out = dyn.sample(x, torch.Generator().manual_seed(0), extras=extras)
     assert out.shape == x.shape
     torch.testing.assert_close(dyn.log_prob(out, x, extras=extras), model.accept_probability(out).log())
+
+
+# ----------------------------------------------------------------------------------- beyond rejection
+
+
+def test_soft_prior_is_a_gaussian_around_the_matched_posture_and_its_test_matches_it():
+    model = tiny_model()
+    theta = near_mean_poses(model, 4000, 0.1, seed=3)
+    p = model.soft_accept_probability(theta)
+    assert ((p > 0) & (p <= 1)).all()
+    at_mean = model.pose(
+        model.mean_performance, torch.zeros(model.n_postures, len(NAMES), dtype=torch.float64)
+    )
+    assert (model.soft_accept_probability(at_mean) > 0.5).all()
+    freq = model.accepts_soft(theta, torch.Generator().manual_seed(1)).double().mean()
+    assert abs(float(freq) - float(p.mean())) < 0.03
+    dyn = ActionConstrained(model, mode="soft", min_accept=0.0)
+    x_old = near_mean_poses(model, 30, 0.05)
+    extras = {"velocity": torch.zeros_like(x_old)}
+    x_new = dyn.sample(x_old, torch.Generator().manual_seed(2), extras=extras)
+    torch.testing.assert_close(
+        dyn.log_prob(x_new, x_old, extras=extras),
+        dyn.dynamics.log_prob(x_new, x_old, extras=extras) + model.soft_accept_probability(x_new).log(),
+    )
+    with pytest.raises(ValueError, match="mode"):
+        ActionConstrained(model, mode="hard")
+
+
+def test_phase_advance_follows_the_mean_performance_and_its_proposal_density_is_exact():
+    from torchpf.filters.state import ParticleState
+    from torchpf.proposals import GaussianRandomWalk
+
+    model = tiny_model()
+    base = torch.zeros(model.n_postures, len(NAMES), dtype=torch.float64)
+    on_mean = model.pose(model.mean_performance, base)
+    moved = model.project(on_mean + model.phase_step(on_mean, 1.0))
+    torch.testing.assert_close(moved, model.mean_performance.roll(-1, 0))  # one posture ahead, cyclic
+    half = model.project(on_mean + model.phase_step(on_mean, 0.5))
+    torch.testing.assert_close(half, 0.5 * (model.mean_performance + model.mean_performance.roll(-1, 0)))
+
+    dyn = GaussianRandomWalk(torch.full((len(NAMES),), 0.05, dtype=torch.float64))
+    q = ActionProposal(model, dyn, fps=15.0, beta=0.25)  # model at 30 fps: half a posture per frame
+    assert q.advance == 2.0
+    parents = near_mean_poses(model, 300, 0.02)
+    state = ParticleState(parents, torch.zeros(300), torch.zeros(()), {}, {})
+    x, log_q = q.sample(state, None, torch.Generator().manual_seed(0))
+    assert x.shape == parents.shape and torch.isfinite(log_q).all()
+    from torchpf.distributions import diag_normal_log_prob
+
+    expected = torch.logaddexp(
+        math.log(0.25) + dyn.log_prob(x, parents),
+        math.log(0.75) + diag_normal_log_prob(x, q.mean(parents), q.noise),
+    )
+    torch.testing.assert_close(log_q, expected)
+
+    # in a filter: the correction weights keep it finite and tracking
+    def likelihood(x, obs):
+        return -0.5 * ((x - obs) ** 2).sum(-1) / 0.1**2
+
+    pf = ParticleFilter(dyn, likelihood, proposal=q, n_particles=200, progress=False)
+    track = pf.run([parents[0]] * 3, parents[:1].expand(200, -1).clone(), generator=0)
+    assert not track.failed.any() and torch.isfinite(track.estimates).all()

@@ -121,3 +121,22 @@ def test_track_takes_a_dynamics_file(f22, tmp_path, registered, capsys):
     assert "tracked 4 frames" in capsys.readouterr().out
     assert main(argv + ["--dynamics", str(tmp_path / "none.npz")]) == 2
     assert "dynamics file not found" in capsys.readouterr().err
+
+
+def test_per_dof_alpha_round_trips_and_drives_a_constant_velocity(tmp_path):
+    from priors.diffusion import LearnedDynamics
+    from priors.motion import ConstantVelocity
+
+    names = ["A_Xrotation", "B_Xrotation", "C_Xposition"]
+    alpha = torch.tensor([0.2, 0.5, 0.9], dtype=torch.float64)
+    stats = LearnedDynamics(
+        names, 120.0, [0.01, 0.02, 0.001], alpha, [0.01, 0.01, 0.001], [True, True, False]
+    )
+    stats.save(tmp_path / "d.npz")
+    back = LearnedDynamics.load(tmp_path / "d.npz", dof_names=names[::-1])
+    torch.testing.assert_close(back.alpha, alpha.flip(0))
+    torch.testing.assert_close(stats.at_fps(30.0).alpha, alpha**4)
+    cv = ConstantVelocity(stats.cv_std, alpha=stats.alpha)
+    x_old, x_new = torch.zeros(1, 3), torch.ones(1, 3)
+    v = cv.update_extras(x_new, x_old, {"velocity": torch.zeros(1, 3)})["velocity"]
+    torch.testing.assert_close(v, (1 - alpha.float()).unsqueeze(0))

@@ -58,7 +58,8 @@ def test_alpha_is_recovered_from_a_constant_velocity_process(f22):
     # Rius eq. 3 run forwards: step = V + e, V <- alpha V + (1 - alpha) step; the innovations e are the
     # prediction errors, so the fitted alpha is the true one and cv_std the std of e
     rng = np.random.default_rng(1)
-    alpha, noise, D = 0.7, 0.01, len(f22.dof_names)
+    D = len(f22.dof_names)
+    alpha, noise = np.where(np.arange(D) % 2 == 0, 0.7, 0.3), 0.01  # Rius §3.1 per DOF: two kinds of DOF
     motions = []
     for k in range(2):
         v, angle, rows = np.zeros(D), np.zeros(D), []
@@ -69,9 +70,12 @@ def test_alpha_is_recovered_from_a_constant_velocity_process(f22):
             rows.append(angle)
         motions.append(Motion(f22.dof_names, 60.0, torch.from_numpy(np.array(rows)), name=f"cv{k}"))
     stats = fit_dynamics(motions, skeleton=f22)
-    assert stats.alpha == pytest.approx(alpha, abs=0.03) and stats.fps == 60.0
+    assert stats.alpha.shape == (D,) and stats.fps == 60.0
+    np.testing.assert_allclose(stats.alpha.numpy(), alpha, atol=0.06)
     np.testing.assert_allclose(stats.cv_std.numpy(), noise, rtol=0.1)
     assert fit_dynamics(motions, skeleton=f22, alpha=0.2).alpha == 0.2
+    pooled = fit_dynamics(motions, skeleton=f22, per_dof=False).alpha  # one α between the two kinds
+    assert isinstance(pooled, float) and 0.3 < pooled < 0.7
 
 
 def test_robust_std_ignores_glitches():

@@ -14,7 +14,8 @@ from torchpf.assets import path as asset_path
 from torchpf.skeleton import Skeleton
 from training import ActionModelFitter, fit_action_model
 from training.align import resample
-from training.fit import constant_velocity_errors, select_posture_dofs
+from training.dynamics import constant_velocity_errors
+from training.fit import select_posture_dofs
 from training.mocap import CMU_SCALE, Motion, bvh_motion, read_bvh
 from training.synthetic import PerformerStyle, generate
 
@@ -211,3 +212,44 @@ def test_leave_one_out_validation_exposes_too_many_components():
     assert rates[13].validation_acceptance_.mean() < rates[13].train_acceptance_ / 10
     assert rates[5].validation_acceptance_.mean() > 10 * rates[13].validation_acceptance_.mean()
     assert ActionModelFitter(n_components=5).fit(walks).validation_acceptance_ is None
+
+
+def test_auto_components_choose_by_leave_one_performer_out_validation():
+    """``n_components="auto"``: per performer a model without them; the largest D (then the smallest n_sigma)
+    that still accepts half of the left-out performer's frames and no random in-limit pose."""
+    from training.fit import ValidationCurve, performer_of, select_n_components
+
+    walks = [generate("walk", 60, 15.0, seed=k, name=f"{k:02d}_01") for k in range(3)]
+    assert performer_of("07_01") == "07" and performer_of("walk") == "walk"
+    curve = select_n_components(walks, candidates=(2, 4, 8), n_sigmas=(2.0, 4.0), n_random=500, fps=15.0)
+    assert curve.performers == ["00", "01", "02"] and curve.heldout.shape == (2, 3, 3)
+    assert curve.random.shape == (2, 3) and np.isnan(curve.negative).all()
+    assert (curve.heldout[1] >= curve.heldout[0] - 1e-12).all()  # a wider test accepts more
+    mean = curve.heldout.mean(1)
+    k, c = curve.n_sigmas.index(curve.chosen_n_sigma), curve.candidates.index(curve.chosen)
+    if "largest D" in curve.rule:
+        assert mean[k, c] >= 0.5 and curve.random[k, c] < 0.01
+        bigger = [j for j, d in enumerate(curve.candidates) if d > curve.chosen]
+        assert not any(((mean[:, j] >= 0.5) & (curve.random[:, j] < 0.01)).any() for j in bigger)
+    again = ValidationCurve.from_dict(curve.as_dict())
+    assert again.table() == curve.table() and "*" in curve.table()
+
+    fitter = ActionModelFitter(action="walk", fps=15.0, candidates=(2, 4, 8), n_sigma=2.0).fit(walks)
+    model = fitter.model_
+    assert model.n_components == fitter.validation_curve_.chosen
+    assert model.n_sigma == fitter.validation_curve_.chosen_n_sigma
+    assert model.training_data["info"]["validation"]["chosen"] == model.n_components
+    with pytest.raises(ValueError, match="at least two performances"):
+        select_n_components(walks[:1], candidates=(2,))
+
+
+def test_truncated_models_are_the_leading_dimensions():
+    walks = [generate("walk", 60, 15.0, seed=k) for k in range(2)]
+    model = ActionModelFitter(n_components=6, fps=15.0).fit(walks).model_
+    small = model.truncated(3, n_sigma=3.0)
+    assert small.n_components == 3 and small.n_sigma == 3.0 and model.truncated(6) is model
+    torch.testing.assert_close(small.mean_performance, model.mean_performance[:, :3])
+    x = walks[0].angles.double()
+    torch.testing.assert_close(small.project(x), model.project(x)[..., :3])
+    with pytest.raises(ValueError, match="n_components"):
+        model.truncated(7)

@@ -108,3 +108,17 @@ def test_help_lists_the_commands():
     assert run.returncode == 0
     for command in ("convert", "fit", "inspect"):
         assert command in run.stdout
+
+
+def test_fit_chooses_components_by_validation_and_inspect_prints_the_curve(walk_csvs, tmp_path, capsys):
+    out = tmp_path / "walk.npz"
+    assert (
+        main(["fit", "--action", "walk", "--skeleton", HUMAN, "--out", str(out), "--quiet", *walk_csvs]) == 0
+    )
+    printed = capsys.readouterr().out
+    assert "leave-one-performer-out acceptance" in printed and "chosen D=" in printed
+    model = ActionModel.load(out)
+    chosen = model.training_data["info"]["validation"]["chosen"]
+    assert model.n_components == chosen and f"chosen D={chosen}," in printed
+    assert main(["inspect", str(out), "--out", str(tmp_path / "plots")]) == 0
+    assert f"chosen D={chosen}," in capsys.readouterr().out

@@ -376,11 +376,13 @@ class ParticleFilter(nn.Module):
         dropped, _, _ = reweight(log_w, torch.where(bad & ~failed.unsqueeze(-1), -math.inf, 0.0))
         log_w = torch.where(bad.any(-1, keepdim=True), dropped, log_w)  # rows without one: untouched
         info = {**info, "nonfinite": bad.sum(-1) + info.get("nonfinite", 0)}  # plus earlier stages' drops
+        extras = self.dynamics.update_extras(x, x_prev, extras_prev)
+        info.update(self.dynamics.frame_stats(x, log_w, extras))  # e.g. an action prior's acceptance
         return ParticleState(
             particles=x,
             log_weights=log_w,
             log_evidence=state.log_evidence + inc,
-            extras=self.dynamics.update_extras(x, x_prev, extras_prev),
+            extras=extras,
             aux=state.aux if aux is None else aux,
             info={"failed": failed, "resampled": resampled, "log_evidence_increment": inc, **info},
         )
