@@ -364,7 +364,7 @@ class Tracker(nn.Module):
             if self.cameras is None and "cue" not in refine_options:
                 raise ValueError(
                     f"filter={self.filter_name!r} refines poses on the silhouettes and needs cameras; "
-                    "without them pass filter_options={'refine_options': {'cue': a differentiable likelihood}}"
+                    "without them pass filter_options={'refine_options': {'cue': a differentiable cue}}"
                 )
             opts["refiner"] = Refiner(self.skeleton, self.cameras, **refine_options)
         if self.filter_name in ("apf", "hybrid") and "diffusion_std" not in opts:
