@@ -315,3 +315,9 @@ def test_a_crash_keeps_the_frames_tracked_so_far(scene, tmp_path):
     assert values.shape == (4, 96)
     full = _sir(skel, cams).track(frames[:4], init=seq.truth[0])
     torch.testing.assert_close(torch.as_tensor(values), full.angles, rtol=0, atol=0)
+
+
+def test_hybrid_needs_cameras_or_a_cue(scene):
+    skel = scene[0]
+    with pytest.raises(ValueError, match="needs cameras"):
+        Tracker(skel, None, likelihood="pointcloud", filter="hybrid", progress=False)
