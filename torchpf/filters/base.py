@@ -190,6 +190,7 @@ class ParticleFilter(nn.Module):
         generator: torch.Generator | int | None = None,
         *,
         extras: Mapping[str, Tensor] | None = None,
+        hook: Any = None,
     ) -> Track:
         """Filter a whole sequence: ``init(x0)`` then one :meth:`step` per observation (under ``no_grad``).
 
@@ -201,6 +202,8 @@ class ParticleFilter(nn.Module):
             generator: randomness, a generator or a seed; the same seed gives the same track. A generator on
                 another device than ``x0`` seeds one there (:func:`torchpf.distributions.as_generator`).
             extras: initial per-particle extras (see :meth:`init`).
+            hook: ``hook(state, obs, generator) -> state`` called after every step, before the frame's
+                estimate is taken: where a tracker mixes in re-detected particles (track recovery).
 
         Returns:
             a :class:`~torchpf.filters.state.Track`.
@@ -214,6 +217,8 @@ class ParticleFilter(nn.Module):
             bar = tqdm(observations, total=total, desc=type(self).__name__, disable=not self.progress)
             for obs in bar:
                 state = self.step(state, obs, generator)
+                if hook is not None:
+                    state = hook(state, obs, generator)
                 info = state.info
                 means.append(state.mean())
                 maps.append(state.map())
