@@ -1,7 +1,7 @@
 """Command line: ``python -m torchpf track`` and ``python -m torchpf evaluate``.
 
     python -m torchpf track SEQ_DIR --skeleton S.urdf [--action walk.npz] --filter apf --particles 500 \\
-        --out track.csv
+        --out track.csv [--init auto|truth|POSE.csv]
     python -m torchpf evaluate track.csv [run2.csv ...] --truth truth.csv --skeleton S.urdf
     python -m torchpf calibrate SEQ_DIR --skeleton S.urdf --out FITTED.urdf [--frames K] \\
         [--init truth|POSE.csv]
@@ -29,10 +29,14 @@ class CliError(Exception):
 
 
 def _parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="python -m torchpf", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(
+        prog="python -m torchpf", description=__doc__.splitlines()[0], allow_abbrev=False
+    )
     sub = ap.add_subparsers(dest="command", required=True)
 
-    tr = sub.add_parser("track", help="track a sequence directory, write the estimated motion as CSV")
+    tr = sub.add_parser(
+        "track", help="track a sequence directory, write the estimated motion as CSV", allow_abbrev=False
+    )
     tr.add_argument("sequence", help="sequence directory (cameras.yaml, masks/, points/, truth.csv)")
     tr.add_argument("--skeleton", required=True, help="URDF of the tracked body")
     tr.add_argument("--out", required=True, help="output mocap CSV")
@@ -55,6 +59,12 @@ def _parser() -> argparse.ArgumentParser:
         help="exponent on the log-likelihood: a number, or auto (set on the first frame for ESS/N = 0.2)",
     )
     tr.add_argument("--init-spread", type=float, help="std of the initial particles (rad / m)")
+    tr.add_argument(
+        "--init",
+        help="initial pose: truth (truth.csv frame 0; the default when present), auto (found from the "
+        "masks alone; an uncalibrated body is fitted, its URDF written next to --out), or a mocap CSV",
+    )
+    tr.add_argument("--no-recovery", action="store_true", help="do not re-acquire a lost track")
     tr.add_argument("--device", help="cpu or cuda")
     tr.add_argument("--seed", type=int, default=0)
     tr.add_argument("--no-progress", action="store_true")
@@ -153,6 +163,7 @@ def _track(args) -> int:
         ("temperature", _temperature(args.temperature)),
         ("init_spread", args.init_spread),
         ("device", args.device),
+        ("recovery", False if args.no_recovery else None),
     ):
         if value is not None:
             kwargs[key] = value
@@ -160,7 +171,14 @@ def _track(args) -> int:
     if seq.times is not None and len(seq.times) > 1 and "fps" not in kwargs:
         kwargs["fps"] = 1.0 / float(seq.times[1] - seq.times[0])
     tracker = Tracker.from_config(kwargs, skeleton=skel, cameras=seq.cameras)
-    result = tracker.track(seq, seed=args.seed)
+    init = args.init
+    if init not in (None, "auto", "truth"):
+        init = _require_file(init, "--init pose CSV")
+    elif init is None and seq.truth is None:
+        raise CliError(
+            f"{args.sequence}: no truth.csv for the initial pose; pass --init auto or --init POSE.csv"
+        )
+    result = tracker.track(seq, seed=args.seed, init=init)
     result.save_csv(args.out)
     n_failed = int(result.failed.sum())
     print(
@@ -168,16 +186,35 @@ def _track(args) -> int:
         f"evaluations/frame) in {result.seconds:.1f} s: mean ESS {float(result.ess.mean()):.1f}, "
         f"{n_failed} failed frames, log-evidence {result.log_evidence:.1f}; wrote {args.out}"
     )
+    if n_failed or bool(result.recovered.any()):
+        failed, recovered = _frame_list(result.failed), _frame_list(result.recovered)
+        print(f"failed frames: {failed}; recovered at frames: {recovered}")
+    if result.skeleton is not skel:  # init auto fitted the body: the track's angles belong to it
+        fitted = os.path.splitext(args.out)[0] + "_fitted.urdf"
+        result.skeleton.save_urdf(fitted)
+        print(f"init auto: fitted the body to frame 0's masks; wrote {fitted} (the track's skeleton)")
     if seq.truth is not None:
         from torchpf import metrics
 
         truth = skel.fk(seq.truth.to(torch.float64))
-        est = skel.fk(result.angles)
+        est = result.skeleton.fk(result.angles)
         print(
             f"vs truth.csv: RMSE {float(metrics.rmse(truth, est)) * 100:.1f} cm, MPJPE "
             f"{float(metrics.mpjpe(truth, est)) * 100:.1f} cm"
         )
     return 0
+
+
+def _frame_list(flags) -> str:
+    """``"3-12, 40"``: the indices of the True entries of a (T,) bool tensor as ranges (``"none"``)."""
+    idx = flags.nonzero().flatten().tolist()
+    runs: list[list[int]] = []
+    for i in idx:
+        if runs and i == runs[-1][-1] + 1:
+            runs[-1].append(i)
+        else:
+            runs.append([i])
+    return ", ".join(f"{r[0]}-{r[-1]}" if len(r) > 1 else str(r[0]) for r in runs) or "none"
 
 
 def _evaluate(args) -> int:
