@@ -4,7 +4,7 @@
         --out track.csv [--init auto|truth|POSE.csv]
     python -m torchpf evaluate track.csv [run2.csv ...] --truth truth.csv --skeleton S.urdf
     python -m torchpf calibrate SEQ_DIR --skeleton S.urdf --out FITTED.urdf [--frames K] \\
-        [--init truth|POSE.csv]
+        [--init auto|truth|POSE.csv]
 
 ``track`` reads a sequence directory (DESIGN.md: cameras.yaml, masks/, optional points/, truth.csv), builds a
 :class:`~torchpf.tracker.Tracker` and writes the estimated motion as mocap CSV. ``evaluate`` compares one or
@@ -84,7 +84,7 @@ def _parser() -> argparse.ArgumentParser:
         "--init",
         default="auto",
         help="initial poses: truth (truth.csv), a mocap CSV of poses (one row per frame, or one row for "
-        "all), or auto (truth.csv when present)",
+        "all), or auto (truth.csv when present, else found from the masks: torchpf.detect)",
     )
     ca.add_argument("--fit-lengths", action="store_true", help="also fit one length factor per bone group")
     ca.add_argument("--iterations", type=int, default=400, help="most optimiser steps (default 400)")
@@ -266,7 +266,15 @@ def _calibrate(args) -> int:
     k = min(args.frames, len(seq.masks))
     if k == 0:
         raise CliError(f"{args.sequence}: no masks to calibrate on")
-    if args.init in ("auto", "truth"):
+    if args.init == "auto" and seq.truth is None:  # no ground truth: the person found from the masks
+        from torchpf.detect import PersonDetector
+
+        try:
+            pose, _, _ = PersonDetector(skel, seq.cameras).fit(seq.frame(0))
+        except ValueError as e:
+            raise CliError(f"--init auto: {e}") from None
+        poses = pose[None]
+    elif args.init in ("auto", "truth"):
         if seq.truth is None:
             raise CliError(f"{args.sequence}: no truth.csv for the initial poses; pass --init POSE.csv")
         if list(seq.dof_names) != list(skel.dof_names):

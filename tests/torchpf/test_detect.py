@@ -110,3 +110,27 @@ def test_recovery_after_a_full_occlusion():
     assert bool(result.failed[5:15].all())
     assert bool(result.recovered[15:].any())
     assert bool((root_err[15:30] < 0.08).any())
+
+
+def test_cli_init_auto_without_truth(case, tmp_path, capsys):
+    import numpy as np
+
+    from torchpf.__main__ import main
+    from torchpf.sequence import SequenceData, write_sequence
+
+    seq_dir = tmp_path / "seq"
+    masks = [[(m.numpy() * 255).astype(np.uint8) for m in f.silhouettes.masks] for f in case.frames[:3]]
+    write_sequence(seq_dir, SequenceData(cameras=case.cameras, masks=masks))
+    urdf = tmp_path / "skeleton.urdf"
+    case.skeleton.save_urdf(urdf)
+    out = tmp_path / "track.csv"
+    args = ["track", str(seq_dir), "--skeleton", str(urdf), "--out", str(out), "--no-progress"]
+    assert main(args) == 2
+    assert "--init auto" in capsys.readouterr().err
+    with pytest.raises(SystemExit):  # no abbreviations: --ini is not --init (nor --init-spread)
+        main([*args, "--ini", "auto"])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        assert main([*args, "--init", "auto", "--particles", "60"]) == 0
+    assert out.is_file() and (tmp_path / "track_fitted.urdf").is_file()
+    assert "init auto: fitted the body" in capsys.readouterr().out
