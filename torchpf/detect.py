@@ -45,7 +45,7 @@ from torch import Tensor
 from torchpf.distributions import as_generator, wrap_angle
 from torchpf.filters.annealed import anneal_beta
 from torchpf.filters.weights import temper
-from torchpf.kinematics.tree import body_partition, children_of
+from torchpf.kinematics.tree import body_partition, children_of, subtree_of
 from torchpf.resampling import RESAMPLERS
 
 __all__ = ["Detection", "PersonDetector", "looks_uncalibrated", "silhouette_masks", "visual_hull"]
@@ -288,10 +288,7 @@ class PersonDetector:
         kids = children_of(parents)
 
         def subtree(j):
-            out = [j]
-            for c in kids[j]:
-                out += subtree(c)
-            return out
+            return subtree_of(kids, j)
 
         root_z, out = float(rest[self.root, 2]), []
         for joints in body_partition(self.skeleton, per_limb=True, joints=True)[1:]:
