@@ -63,6 +63,7 @@ printing MPJPE, RMSE, failure rates, ESS and time per clip and averaged, one row
     python -m benchmarks.evaluate --renderer foreign                     # all 11 clips (a few minutes)
     python -m benchmarks.evaluate --renderer foreign --clips 07_01 --presets clean --frames 20
     python -m benchmarks.evaluate --renderer foreign --in-place --runs 3 --setups before,defaults
+    python -m benchmarks.evaluate --renderer foreign --setups defaults,calibrated,auto   # issue 13: no truth
 
 Outputs in ``--out`` (default ``out/evaluate``): ``table.md`` (printed too), ``results.csv`` (one row per
 sequence x filter x N x run, then one ``aggregate`` row per sequence x filter x N), ``frames.csv`` (mean
