@@ -4,9 +4,11 @@ Each *case* is a short clip of a CMU performance (a walk or a run, a random star
 drawn by the foreign renderer (:mod:`benchmarks.foreign`, a body the tracker's model has never seen) for a
 ring of 3 cameras (160x120) whose centre is placed at a random offset of up to ``spread`` m from the
 performer (a random position in the capture volume) and whose first camera sits at a random azimuth (a random
-heading of the performer relative to the rig). The tracker gets the masks and the cameras only:
-``Tracker(skel, rig, fps=30).track(frames, init="auto")`` (:mod:`torchpf.detect`), with the converted
-skeleton's own (uncalibrated) body, which ``init="auto"`` fits to frame 0.
+heading of the performer relative to the rig; for the recovery runs the ring is centred on the motion's
+mean root position and moved out by the root's travel, so that a run stays in view). The tracker gets the
+masks and the cameras only: ``Tracker(skel, rig, fps=30).track(frames, init="auto")``
+(:mod:`torchpf.detect`), with the converted skeleton's own (uncalibrated) body, which ``init="auto"`` fits to
+frame 0.
 
 Reported per case: MPJPE (m, the 15 structural joints of :func:`benchmarks.foreign.body_plan`) of the
 initial pose (frame 0) and of the track after ``frames`` frames, and whether each is within ``threshold``
@@ -56,9 +58,18 @@ class Case:
 
 
 def make_case(
-    clip: str, *, seed: int, frames: int = 8, spread: float = 0.8, size=(160, 120), cmu_dir=CMU
+    clip: str,
+    *,
+    seed: int,
+    frames: int = 8,
+    spread: float = 0.8,
+    size=(160, 120),
+    follow: bool = False,
+    cmu_dir=CMU,
 ) -> Case:
-    """A random case of ``clip`` (module docstring): start frame, rig offset and azimuth from ``seed``."""
+    """A random case of ``clip`` (module docstring): start frame, rig offset and azimuth from ``seed``;
+    the ring is centred on the first frame's root, or with ``follow`` on the motion's mean root and moved
+    out by its travel."""
     from training.mocap import load_bvh
 
     rng = np.random.default_rng(seed)
@@ -67,12 +78,17 @@ def make_case(
     start = int(rng.integers(0, max(1, len(angles) - frames)))
     angles = angles[start : start + frames]
     with torch.no_grad():
-        root = skel.fk(angles[0])[skel.parents.index(-1)]
+        roots = skel.fk(angles)[:, skel.parents.index(-1)]
+    # the ring is centred on the middle of the motion (plus the random offset) and moved out by the root's
+    # travel, so a run stays in view of every camera
+    root, travel = roots[0], 0.0
+    if follow:
+        root, travel = roots.mean(0), float((roots[-1, :2] - roots[0, :2]).norm())
     r, phi = spread * math.sqrt(rng.uniform()), rng.uniform(0, 2 * math.pi)
     target = (float(root[0]) + r * math.cos(phi), float(root[1]) + r * math.sin(phi), 0.9)
     rig = camera_ring(
         3,
-        radius=5.5,
+        radius=5.5 + travel,
         height=1.5,
         target=target,
         width=size[0],
@@ -150,7 +166,7 @@ def main(argv=None) -> int:
         print("| case | recovery | lost frames | root < 80 mm at | MPJPE < 80 mm at | MPJPE after (mm) |")
         print("|---|---|---|---:|---:|---:|")
         for k in range(args.cases):
-            case = make_case(CLIPS[k % len(CLIPS)], seed=args.seed + k, frames=frames)
+            case = make_case(CLIPS[k % len(CLIPS)], seed=args.seed + k, frames=frames, follow=True)
             for rec in (True, False):
                 err, root_err, result = run_recovery(case, 5, rec, seed=args.seed + k)
                 after = list(range(15, frames))

@@ -673,7 +673,8 @@ class Recovery:
     judged lost, after the frame's filtering step:
 
     * **lost** when the silhouettes' total area falls below ``coverage`` x its running median (the person
-      is occluded or gone: nothing to re-acquire from, the frame is flagged and the filter coasts), or the
+      is occluded or gone: nothing to re-acquire from, the frame is flagged and the filter coasts; the first
+      frame seen again is re-acquired), or the
       estimate's root is more than ``distance`` (m) horizontally from the visual hull's centre. The hull
       is checked when the log-likelihood of the estimate collapses (below the running median of the last
       ``window`` good frames by more than ``max(4 x 1.48 MAD, collapse x |median|)``), on every frame after
@@ -715,6 +716,7 @@ class Recovery:
         self.recovered: list[bool] = []
         self._areas: list[float] = []
         self._lls: list[float] = []
+        self._gap = False
 
     def _estimate_ll(self, state, obs) -> float:
         with torch.no_grad():
@@ -732,7 +734,9 @@ class Recovery:
         ref_area = float(np.median(self._areas[-self.window :])) if self._areas else area
         was_lost = bool(self.lost) and self.lost[-1]
         lost, recovered = area <= self.coverage * ref_area, False
-        if not lost:
+        if lost:
+            self._gap = True
+        else:
             self._areas.append(area)
             ll = self._estimate_ll(state, obs)
             history = np.asarray(self._lls[-self.window :])
@@ -745,8 +749,11 @@ class Recovery:
             if suspicious or was_lost or t % self.check_every == 0:
                 det = self.detector.detect(obs)
             dist = self._root_distance(state, det) if det is not None else 0.0
-            if det is not None and dist > self.distance:
+            if det is not None and (dist > self.distance or self._gap):
+                # after a gap the particles have coasted blind: the posture is re-searched even when the
+                # root is still over the person
                 state = self._reacquire(state, obs, det, generator)
+                self._gap = False
                 lost = True  # this frame's track was lost; the next frames say whether it came back
             else:
                 recovered = was_lost

@@ -103,7 +103,7 @@ def test_recovery_after_a_full_occlusion():
     occluded frames are reported failed and the re-acquisition as recovered."""
     from benchmarks.auto_init import make_case, run_recovery
 
-    case = make_case("07_01", seed=5, frames=30)
+    case = make_case("07_01", seed=5, frames=30, follow=True)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         err, root_err, result = run_recovery(case, 5, recovery=True)
