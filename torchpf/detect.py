@@ -16,10 +16,16 @@ bottom-up detector mixed into the proposal, as I-CONDENSATION does):
   arms; a limb rotates about the joint that ends its girdle segment); a grid of headings about the vertical
   (root DOFs solved by IK, so any Euler order works); the root placed at the hull's centre, its height the
   floor plus the rest pose's root height.
-* **Search** (:meth:`PersonDetector.search`): every heading x posture is scored by the tracker's likelihood
-  on the first frame, then an annealed search (Deutscher's adaptive annealing, survival rate 0.3;
-  resample, diffuse with shrinking noise) refines the population, which becomes the filter's initial
-  particles.
+* **Which heading**: the torso slice's principal axis gives the shoulder line up to its sign; the hull's
+  motion over the first frames picks the sign whose feet point forwards
+  (:meth:`~PersonDetector.heading_choices`).
+* **Initial pose** (:meth:`PersonDetector.fit`): each kept heading x {standing, either stride} is refined
+  by :func:`torchpf.calibrate.fit_body` on frame 0 (a soft area match: it tells the strides apart where a
+  thin model's likelihood does not), and the lowest silhouette loss wins; the fitted body comes with it.
+* **Re-acquisition** (:meth:`PersonDetector.search`, :class:`Recovery`): the candidates and the lost
+  track's own particles moved over the hull are scored by the tracker's likelihood and refined by
+  partitioned annealing (Deutscher's adaptive annealing, survival rate 0.3; torso then each limb: resample,
+  diffuse with shrinking noise); the population replaces the filter's particles.
 * **Body**: :func:`looks_uncalibrated` tells a stick-figure body (a converted skeleton's ``0.15 x`` length
   capsules) from a fitted one by its torso's thickness relative to the stature.
 
@@ -30,7 +36,8 @@ Example::
 
     detector = PersonDetector(skel, seq.cameras)
     det = detector.detect(seq.frame(0))                    # Detection: centre, floor, stature
-    particles, log_lik = detector.search(likelihood, seq.frame(0), n=500)
+    pose, fitted, report = detector.fit(seq.frame(0))      # (D,) pose, fitted body
+    particles, log_lik = detector.search(likelihood, seq.frame(0), n=500)   # (500, D), (500,)
 """
 
 from __future__ import annotations
@@ -502,12 +509,12 @@ class PersonDetector:
         iterations: int = 200,
         keep: int = 2,
     ):
-        """Pose (and body) from one frame's masks alone: every searched heading (:meth:`heading_choices`)
-        x {standing, either stride} is refined by :func:`torchpf.calibrate.fit_body` for ``quick`` steps,
-        the ``keep`` lowest final silhouette losses for ``iterations`` steps, and the best of those is
-        returned. The fit's objective penalises both a model outside the mask and mask left uncovered
-        (a soft-rasterised area match), which tells the strides and the front from the back far better
-        than a thin model's likelihood does.
+        """Pose (and body) from one frame's masks alone: the central heading of each stratum of
+        :meth:`heading_choices` x {standing, either stride} is refined by
+        :func:`torchpf.calibrate.fit_body` for ``quick`` steps, the ``keep`` lowest final silhouette
+        losses for ``iterations`` steps, and the best of those is returned. The fit's objective penalises
+        both a model outside the mask and mask left uncovered (a soft-rasterised area match), which tells
+        the strides and the front from the back far better than a thin model's likelihood does.
 
         Returns:
             ``(pose (D,), fitted, report)``: the refined pose, the fitted skeleton (radii, scale) and its
