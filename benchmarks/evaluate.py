@@ -63,6 +63,7 @@ printing MPJPE, RMSE, failure rates, ESS and time per clip and averaged, one row
     python -m benchmarks.evaluate --renderer foreign                     # all 11 clips (a few minutes)
     python -m benchmarks.evaluate --renderer foreign --clips 07_01 --presets clean --frames 20
     python -m benchmarks.evaluate --renderer foreign --in-place --runs 3 --setups before,defaults
+    python -m benchmarks.evaluate --renderer foreign --setups defaults,calibrated,auto   # issue 13: no truth
 
 Outputs in ``--out`` (default ``out/evaluate``): ``table.md`` (printed too), ``results.csv`` (one row per
 sequence x filter x N x run, then one ``aggregate`` row per sequence x filter x N), ``frames.csv`` (mean
@@ -852,6 +853,25 @@ def calibrated_setup(frames_used: int = 8, **options: Any) -> Callable[..., Trac
     return setup
 
 
+def auto_setup(**options: Any) -> Callable[..., Any]:
+    """A setup that tracks without the ground truth: ``Tracker(skel, cameras, n_particles=N, **options)
+    .track(seq_dir, init="auto")`` (:mod:`torchpf.detect`: the person found from the masks, the body fitted
+    to frame 0 when it looks uncalibrated); returns the TrackResult, whose ``skeleton`` is the estimate's."""
+
+    def setup(seq_dir: Path, skeleton: Skeleton, *, n_particles: int = 500, seed: int = 0, **_):
+        import warnings
+
+        from torchpf.sequence import read_sequence
+
+        tracker = _tracker(seq_dir, skeleton, read_sequence(seq_dir).cameras, n_particles, **options)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # the uncalibrated-body warning, expected here
+            return tracker.track(seq_dir, init="auto", seed=seed)
+
+    setup.__doc__ = f"init='auto', then Tracker options {options}"
+    return setup
+
+
 #: Tracker configurations compared on the foreign renders, printed side by side ("before/after"). A setup
 #: is ``setup(seq_dir, skeleton, *, n_particles, seed) -> Tracker | TrackResult``: a Tracker is run on
 #: ``seq_dir`` (``tracker.track(seq_dir, seed=seed)``), a TrackResult is taken as the run (a setup that
@@ -870,6 +890,7 @@ FOREIGN_SETUPS: dict[str, Callable[..., Any]] = {
         **_BIDIR, filter="partitioned", dynamics_options={"stds": "table5"}
     ),
     "calibrated": calibrated_setup(),  # fit_body, then the defaults
+    "auto": auto_setup(),  # issue 13: no ground truth; detector + fit_body on frame 0, then the defaults
     "calibrated_bidir_partitioned": calibrated_setup(**_BIDIR, filter="partitioned"),
     "calibrated_bidir_sir": calibrated_setup(**_BIDIR, filter="sir"),
     "calibrated_bidir_apf": calibrated_setup(**_BIDIR, filter="apf"),
@@ -1032,7 +1053,7 @@ def run_foreign(cfg: ForeignConfig, out: str | os.PathLike = "out/foreign", prog
                     track = made if isinstance(made, TrackResult) else made.track(seq.path, seed=cfg.seed + r)
                     totals.append(time.perf_counter() - t0)
                     # a setup that fitted the body tracks with its own skeleton: its joints are the estimate
-                    body = made.skeleton if isinstance(made, Tracker) else skel
+                    body = track.skeleton if track.skeleton is not None else skel
                     with torch.no_grad():
                         estimates.append(body.fk(track.angles)[:, joints])
                     seconds.append(track.seconds / K)

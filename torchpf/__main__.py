@@ -1,10 +1,10 @@
 """Command line: ``python -m torchpf track`` and ``python -m torchpf evaluate``.
 
     python -m torchpf track SEQ_DIR --skeleton S.urdf [--action walk.npz] --filter apf --particles 500 \\
-        --out track.csv
+        --out track.csv [--init auto|truth|POSE.csv]
     python -m torchpf evaluate track.csv [run2.csv ...] --truth truth.csv --skeleton S.urdf
     python -m torchpf calibrate SEQ_DIR --skeleton S.urdf --out FITTED.urdf [--frames K] \\
-        [--init truth|POSE.csv]
+        [--init auto|truth|POSE.csv]
     python -m torchpf masks VIDEO_OR_FOLDER... --cameras cameras.yaml --out SEQ_DIR \\
         [--background-frames N | --clean-plate IMG...]
     python -m torchpf render TRACK.csv --skeleton S.urdf --sequence SEQ_DIR --out overlay.mp4
@@ -38,11 +38,15 @@ _BYTES_PER_PARTICLE_CAPSULE = 1400
 def _parser() -> argparse.ArgumentParser:
     from torchpf._version import __version__
 
-    ap = argparse.ArgumentParser(prog="python -m torchpf", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(
+        prog="python -m torchpf", description=__doc__.splitlines()[0], allow_abbrev=False
+    )
     ap.add_argument("--version", action="version", version=f"torchpf {__version__}")
     sub = ap.add_subparsers(dest="command", required=True)
 
-    tr = sub.add_parser("track", help="track a sequence directory, write the estimated motion as CSV")
+    tr = sub.add_parser(
+        "track", help="track a sequence directory, write the estimated motion as CSV", allow_abbrev=False
+    )
     tr.add_argument("sequence", help="sequence directory (cameras.yaml, masks/, points/, truth.csv)")
     tr.add_argument("--skeleton", required=True, help="URDF of the tracked body")
     tr.add_argument("--out", required=True, help="output mocap CSV")
@@ -69,6 +73,12 @@ def _parser() -> argparse.ArgumentParser:
         help="exponent on the log-likelihood: a number, or auto (set on the first frame for ESS/N = 0.2)",
     )
     tr.add_argument("--init-spread", type=float, help="std of the initial particles (rad / m)")
+    tr.add_argument(
+        "--init",
+        help="initial pose: truth (truth.csv frame 0; the default when present), auto (found from the "
+        "masks alone; an uncalibrated body is fitted, its URDF written next to --out), or a mocap CSV",
+    )
+    tr.add_argument("--no-recovery", action="store_true", help="do not re-acquire a lost track")
     tr.add_argument("--device", help="cpu or cuda")
     tr.add_argument("--seed", type=int, default=0)
     tr.add_argument("--no-progress", action="store_true")
@@ -90,7 +100,7 @@ def _parser() -> argparse.ArgumentParser:
         "--init",
         default="auto",
         help="initial poses: truth (truth.csv), a mocap CSV of poses (one row per frame, or one row for "
-        "all), or auto (truth.csv when present)",
+        "all), or auto (truth.csv when present, else found from the masks: torchpf.detect)",
     )
     ca.add_argument("--fit-lengths", action="store_true", help="also fit one length factor per bone group")
     ca.add_argument("--iterations", type=int, default=400, help="most optimiser steps (default 400)")
@@ -237,6 +247,7 @@ def _track(args) -> int:
         ("temperature", _temperature(args.temperature)),
         ("init_spread", args.init_spread),
         ("device", args.device),
+        ("recovery", False if args.no_recovery else None),
     ):
         if value is not None:
             kwargs[key] = value
@@ -247,8 +258,15 @@ def _track(args) -> int:
     if seq.times is not None and len(seq.times) > 1 and "fps" not in kwargs:
         kwargs["fps"] = 1.0 / float(seq.times[1] - seq.times[0])
     tracker = Tracker.from_config(kwargs, skeleton=skel, cameras=seq.cameras)
+    init = args.init
+    if init not in (None, "auto", "truth"):
+        init = _require_file(init, "--init pose CSV")
+    elif init is None and seq.truth is None:
+        raise CliError(
+            f"{args.sequence}: no truth.csv for the initial pose; pass --init auto or --init POSE.csv"
+        )
     # the CSV is written as frames are tracked: OUT.partial keeps the finished frames if the run stops
-    result = tracker.track(seq, seed=args.seed, out=args.out)
+    result = tracker.track(seq, seed=args.seed, init=init, out=args.out)
     n_failed = int(result.failed.sum())
     blind = result.no_evidence.nonzero().flatten().tolist()
     print(
@@ -257,9 +275,9 @@ def _track(args) -> int:
         f"{n_failed} failed frames, {len(blind)} frames without evidence, log-evidence "
         f"{result.log_evidence:.1f}; wrote {args.out}"
     )
-    if blind:
-        from torchpf.sequence import format_frames
+    from torchpf.sequence import format_frames
 
+    if blind:
         print(f"frames without evidence (no usable mask, point or keypoint): {format_frames(blind)}")
     if "action_fallback" in result.stats:  # a learned prior says when it gave up on the sequence
         fell, accepted = result.stats["action_fallback"], result.stats["action_accepted"]
@@ -267,11 +285,20 @@ def _track(args) -> int:
             f"action prior: accepted {100 * float(accepted.float().mean()):.0f}% of the particles; fell back "
             f"to its plain dynamics on {int(fell.sum())} of {fell.numel()} frames"
         )
+    if n_failed or bool(result.recovered.any()):
+        failed, recovered = (
+            format_frames(f.nonzero().flatten().tolist()) or "none" for f in (result.failed, result.recovered)
+        )
+        print(f"failed frames: {failed}; recovered at frames: {recovered}")
+    if result.skeleton is not skel:  # init auto fitted the body: the track's angles belong to it
+        fitted = os.path.splitext(args.out)[0] + "_fitted.urdf"
+        result.skeleton.save_urdf(fitted)
+        print(f"init auto: fitted the body to frame 0's masks; wrote {fitted} (the track's skeleton)")
     if seq.truth is not None:
         from torchpf import metrics
 
         truth = skel.fk(seq.truth_in(skel.dof_names).to(torch.float64))
-        est = skel.fk(result.angles)
+        est = result.skeleton.fk(result.angles)
         print(
             f"vs truth.csv: RMSE {float(metrics.rmse(truth, est)) * 100:.1f} cm, MPJPE "
             f"{float(metrics.mpjpe(truth, est)) * 100:.1f} cm"
@@ -333,7 +360,15 @@ def _calibrate(args) -> int:
     k = min(args.frames, len(seq.masks))
     if k == 0:
         raise CliError(f"{args.sequence}: no masks to calibrate on")
-    if args.init in ("auto", "truth"):
+    if args.init == "auto" and seq.truth is None:  # no ground truth: the person found from the masks
+        from torchpf.detect import PersonDetector
+
+        try:
+            pose, _, _ = PersonDetector(skel, seq.cameras).fit(seq.frame(0))
+        except ValueError as e:
+            raise CliError(f"--init auto: {e}") from None
+        poses = pose[None]
+    elif args.init in ("auto", "truth"):
         if seq.truth is None:
             raise CliError(f"{args.sequence}: no truth.csv for the initial poses; pass --init POSE.csv")
         poses = seq.truth_in(skel.dof_names).to(torch.float64)

@@ -21,9 +21,14 @@ Pieces by name:
   ``torchpf.dynamics`` entry-point group (the ``priors`` package registers ``random_walk``,
   ``constant_velocity``, ``damped``, ``action``...). torchpf itself never imports ``priors``.
 
-Initialisation (the papers initialise "by hand"): from the first frame of the ground truth when the sequence
-has one, or from a pose given by the user; particles are that pose plus Gaussian noise of ``init_spread``
-(rad for angles, m for translations), clamped to the joint limits.
+Initialisation (the papers initialise "by hand"): ``track(seq, init=...)`` takes ``"truth"`` (the first frame
+of the ground truth, the default when the sequence has one), a (D,) pose or a mocap CSV, or ``"auto"``: the
+person found from the silhouettes alone (:mod:`torchpf.detect`: visual hull, heading and stride search,
+pose refined by :func:`torchpf.calibrate.fit_body`; a stick-figure body is replaced by the fitted one).
+Particles are that pose plus Gaussian noise of ``init_spread`` (rad for angles, m for translations), clamped
+to the joint limits. With ``recovery`` (default), a lost track (silhouettes gone, the estimate's likelihood
+collapsed or its root off the visual hull) is re-acquired from the same detector
+(:class:`torchpf.detect.Recovery`); ``result.failed`` / ``result.recovered`` flag those frames.
 
 Example::
 
@@ -81,13 +86,17 @@ class TrackResult:
         map_angles: (T, D) highest-weight particle of each frame.
         ess: (T,) effective sample size after weighting (Brubaker eq. 18).
         log_evidence: log p(z_{1:T}) estimate (see the filter's docstring for what the APF reports).
-        failed: (T,) bool, frames where every weight was -inf/NaN (predicted particles kept).
+        failed: (T,) bool, frames where every weight was -inf/NaN (predicted particles kept), or where the
+            track was judged lost (:class:`torchpf.detect.Recovery`).
         no_evidence: (T,) bool, frames whose observations cannot tell poses apart (no camera with a usable
             mask, no points, no keypoints: :meth:`~torchpf.observations.Frame.has_evidence`); their
             estimate is the motion prior's prediction.
         stats: filter-specific per-frame statistics (HMC acceptance, APF betas, ...).
         seconds: wall-clock time of the filtering loop.
         likelihood_evaluations: per frame.
+        recovered: (T,) bool, frames where a lost track was re-acquired (all False without recovery).
+        skeleton: the skeleton the angles belong to: the tracker's, or the body fitted by ``init="auto"``.
+        init: how the track started (``"truth"``, ``"pose"``, ``"auto"``).
     """
 
     dof_names: list[str]
@@ -101,6 +110,9 @@ class TrackResult:
     seconds: float = 0.0
     likelihood_evaluations: int = 0
     no_evidence: torch.Tensor | None = None
+    recovered: torch.Tensor | None = None
+    skeleton: Any = None
+    init: str = "truth"
 
     def save_csv(self, path: str | os.PathLike) -> None:
         """Write the estimates as mocap CSV (DESIGN.md: ``time`` column then one column per DOF)."""
@@ -212,6 +224,8 @@ class Tracker(nn.Module):
         fps: frame rate (Hz) of the sequences to track; passed to a named prior's factory that takes ``fps``
             (the default random walk's structural stds are a distance per frame, ``speed / fps``;
             :mod:`priors.diffusion`).
+        recovery: detect a lost track and re-acquire it from the silhouettes
+            (:class:`torchpf.detect.Recovery`, Brubaker §6).
         device, dtype: where and in which precision to run (observations are moved per frame).
         progress: tqdm progress bar.
     """
@@ -232,11 +246,16 @@ class Tracker(nn.Module):
         filter_options: Mapping[str, Any] | None = None,
         init_spread: float | torch.Tensor = 0.02,
         fps: float | None = None,
+        recovery: bool = True,
         device: str | torch.device | None = None,
         dtype: torch.dtype = torch.float32,
         progress: bool = True,
     ):
         super().__init__()
+        # the keywords, to rebuild the same tracker on a fitted body (``track(init="auto")``)
+        self._options = {
+            k: v for k, v in locals().items() if k not in ("self", "skeleton", "cameras", "__class__")
+        }
         if not isinstance(skeleton, nn.Module):
             from torchpf.skeleton import Skeleton
 
@@ -270,6 +289,7 @@ class Tracker(nn.Module):
         self.filter_options = dict(filter_options or {})
         self.init_spread = init_spread
         self.fps = fps
+        self.recovery = recovery
         self.device = torch.device(device) if device is not None else torch.device("cpu")
         self.dtype = dtype
         self.progress = progress
@@ -425,11 +445,15 @@ class Tracker(nn.Module):
         x0[0] = pose  # the given pose itself is one of the hypotheses
         return self.skeleton.clamp(x0)
 
+    def with_skeleton(self, skeleton) -> Tracker:
+        """The same tracker (all keywords alike) on another skeleton, e.g. a body fitted to the masks."""
+        return type(self)(skeleton, self.cameras, **self._options)
+
     def track(
         self,
         sequence,
         *,
-        init: torch.Tensor | None = None,
+        init: torch.Tensor | str | os.PathLike | None = None,
         generator: torch.Generator | None = None,
         seed: int | None = 0,
         fps: float | None = None,
@@ -442,7 +466,12 @@ class Tracker(nn.Module):
                 per-frame observations (:class:`~torchpf.observations.Frame` or whatever the likelihood
                 takes). A directory is read lazily (:func:`~torchpf.sequence.read_sequence`): each frame is
                 read, moved to the device, tracked and dropped, so memory does not grow with the length.
-            init: (D,) initial pose; default the sequence's first ground-truth frame.
+            init: ``"truth"`` (the sequence's first ground-truth frame; the default when it has one), a (D,)
+                pose, a mocap CSV path (its first row), or ``"auto"``: found from the silhouettes alone
+                (:meth:`torchpf.detect.PersonDetector.fit`: visual hull, heading and stride search, pose
+                refined by :func:`torchpf.calibrate.fit_body` on frame 0). When the body looks uncalibrated
+                (:func:`torchpf.detect.looks_uncalibrated`, warned) the track runs on the fitted body,
+                returned as ``result.skeleton``.
             generator: random generator; default one seeded with ``seed`` (0). A generator on another device
                 than the tracker's seeds a new one there (:func:`torchpf.distributions.as_generator`).
             fps: frame rate of the result (default: from the sequence's times, else 30).
@@ -464,22 +493,44 @@ class Tracker(nn.Module):
         if isinstance(sequence, str | os.PathLike):
             where = os.fspath(sequence)
             sequence = read_sequence(sequence)
+        if isinstance(init, str | os.PathLike) and os.fspath(init) not in ("auto", "truth"):
+            from torchpf.io import read_mocap_csv
+
+            _, _, rows = read_mocap_csv(init, expected_dof_names=self.skeleton.dof_names)
+            if len(rows) == 0:
+                raise ValueError(f"{os.fspath(init)}: the initial pose CSV has no rows")
+            init = torch.as_tensor(rows[0], dtype=torch.float64)
+        truth = None
         if isinstance(sequence, SequenceData):
             observed = _observed_fields(self.likelihood)
             if len(sequence) and not sequence.has_observations(observed):
                 what = "masks, points or keypoints" if observed is None else " or ".join(sorted(observed))
                 raise ValueError(f"{where}: no observations to track (no {what})")
             frames = _Frames(len(sequence), sequence.frame)
-            if init is None and sequence.truth is not None:
-                init = sequence.truth_in(self.skeleton.dof_names)[0]
+            if sequence.truth is not None and (init is None or isinstance(init, str) and init == "truth"):
+                truth = sequence.truth_in(self.skeleton.dof_names)[0]
             if fps is None and sequence.times is not None and len(sequence.times) > 1:
                 fps = 1.0 / float(sequence.times[1] - sequence.times[0])
         else:
             frames = list(sequence)
         if not len(frames):
             raise ValueError("the sequence has no frames")
-        if init is None:
-            raise ValueError("no initial pose: the sequence has no ground truth; pass init=(D,) pose")
+        how = "pose"
+        if init is None or isinstance(init, str) and init == "truth":
+            if truth is None:
+                raise ValueError(
+                    'no initial pose: the sequence has no ground truth; pass init="auto" or a pose'
+                )
+            init, how = truth, "truth"
+        elif isinstance(init, str) and init == "auto":
+            pose, fitted = self._auto_init(frames)
+            if fitted is not None:
+                result = self.with_skeleton(fitted).track(
+                    sequence, init=pose, generator=generator, seed=seed, fps=fps, out=out
+                )
+                result.init = "auto"
+                return result
+            init, how = pose, "auto"
         init = torch.as_tensor(init, dtype=torch.float64)
         if init.shape != (len(self.skeleton.dof_names),):
             raise ValueError(
@@ -499,11 +550,12 @@ class Tracker(nn.Module):
         t0 = time.perf_counter()
         if self.temperature == "auto":
             self._calibrate_temperature(x0, _to_device(frames[0], self.device, self.dtype), generator)
+        hook = self._recovery() if self.recovery and self.cameras is not None else None
         buffer = _FrameBuffer()
         writer = MocapCsvWriter(out, self.skeleton.dof_names, fps=fps) if out is not None else None
         state = None
         try:
-            for state in self.filter.iterate(_Frames(len(frames), observe), x0, generator):
+            for state in self.filter.iterate(_Frames(len(frames), observe), x0, generator, hook=hook):
                 fields, stats = frame_summary(state)
                 buffer.add({**fields, **{f"stats/{k}": v for k, v in stats.items()}})
                 if writer is not None:
@@ -523,6 +575,11 @@ class Tracker(nn.Module):
         stats = {k[len("stats/") :]: v for k, v in per_frame.items() if k.startswith("stats/")}
         if isinstance(self.likelihood, TemperedLikelihood):
             stats["temperature"] = self.likelihood.beta.detach().cpu().clone()
+        failed = per_frame["failed"]
+        recovered = torch.zeros_like(failed)
+        if hook is not None:
+            failed = failed | torch.tensor(hook.lost, dtype=torch.bool).reshape(failed.shape)
+            recovered = torch.tensor(hook.recovered, dtype=torch.bool).reshape(failed.shape)
         return TrackResult(
             dof_names=list(self.skeleton.dof_names),
             fps=fps,
@@ -530,9 +587,64 @@ class Tracker(nn.Module):
             map_angles=per_frame["map_estimates"].to(torch.float64),
             ess=per_frame["ess"],
             log_evidence=float(state.log_evidence),
-            failed=per_frame["failed"],
+            failed=failed,
             stats=stats,
             seconds=seconds,
             likelihood_evaluations=self.likelihood_evaluations,
             no_evidence=~torch.tensor(evidence, dtype=torch.bool),
+            recovered=recovered,
+            skeleton=self.skeleton,
+            init=how,
+        )
+
+    # ------------------------------------------------------------------ detection (torchpf.detect)
+    def detector(self):
+        """The :class:`~torchpf.detect.PersonDetector` of this skeleton and rig (built once)."""
+        from torchpf.detect import PersonDetector
+
+        if getattr(self, "_detector", None) is None:
+            self._detector = PersonDetector(self.skeleton, self.cameras)
+        return self._detector
+
+    def _auto_init(self, frames: list) -> tuple[torch.Tensor, Any]:
+        """``(pose (D,), fitted skeleton or None)`` from the silhouettes of the first frames."""
+        import warnings
+
+        from torchpf.detect import looks_uncalibrated
+
+        if self.cameras is None:
+            raise ValueError('init="auto" needs the cameras of the silhouettes')
+        detector = self.detector()
+        det = detector.detect(frames[0])
+        if det is None:
+            raise ValueError(
+                'init="auto": no person found in frame 0 (fewer than two cameras see a silhouette)'
+            )
+        # the hull's velocity over the first frames breaks the front/back tie (people walk forwards)
+        k = min(5, len(frames) - 1)
+        later = detector.detect(frames[k]) if k > 0 else None
+        fps = self.fps or 30.0
+        motion = (later.centre - det.centre) * fps / k if later is not None else None
+        pose, fitted, report = detector.fit(frames[0], det=det, motion=motion)
+        if looks_uncalibrated(self.skeleton):
+            warnings.warn(
+                "the skeleton's body looks uncalibrated (its torso capsules are thinner than 4 % of its "
+                f"stature); tracking with the body fitted to frame 0's masks (scale {report.scale:.3f}); "
+                "calibrate it once with 'python -m torchpf calibrate' to skip this guess",
+                stacklevel=3,
+            )
+            return pose, fitted
+        return pose, None
+
+    def _recovery(self):
+        from torchpf.detect import Recovery
+
+        std = _diffusion_std(self.dynamics)
+        std = 0.05 if std is None else torch.as_tensor(std, dtype=torch.float64).cpu()
+        return Recovery(
+            self.detector(),
+            self.likelihood,
+            std=std,
+            init_extras=self.filter.dynamics.init_extras,
+            dtype=self.dtype,
         )

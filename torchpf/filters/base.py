@@ -208,6 +208,7 @@ class ParticleFilter(nn.Module):
         *,
         extras: Mapping[str, Tensor] | None = None,
         grad: bool = False,
+        hook: Any = None,
     ) -> Track:
         """Filter a whole sequence: ``init(x0)`` then one :meth:`step` per observation.
 
@@ -229,6 +230,8 @@ class ParticleFilter(nn.Module):
                 estimate; with it, a biased but low-variance estimate of the score, good enough to fit
                 a few scale parameters (Poyiadjis et al. 2011 discuss the bias). The filters' MCMC moves
                 and annealing schedules are computed without gradient.
+            hook: ``hook(state, obs, generator) -> state`` called after every step, before the frame's
+                estimate is taken: where a tracker mixes in re-detected particles (track recovery).
 
         Returns:
             a :class:`~torchpf.filters.state.Track`.
@@ -236,7 +239,7 @@ class ParticleFilter(nn.Module):
         fields: dict[str, list[Tensor]] = {}
         stats: dict[str, list[Tensor]] = {}
         state = None
-        for state in self.iterate(observations, x0, generator, extras=extras, grad=grad):
+        for state in self.iterate(observations, x0, generator, extras=extras, grad=grad, hook=hook):
             frame, frame_stats = frame_summary(state)
             for out, values in ((fields, frame), (stats, frame_stats)):
                 for key, value in values.items():
@@ -263,6 +266,7 @@ class ParticleFilter(nn.Module):
         *,
         extras: Mapping[str, Tensor] | None = None,
         grad: bool = False,
+        hook: Any = None,
     ) -> Iterator[ParticleState]:
         """:meth:`run` one frame at a time: ``init(x0)``, then yields the state after each :meth:`step`
         (under ``no_grad`` unless ``grad``) and keeps nothing, so a consumer that writes each frame out runs
@@ -276,6 +280,8 @@ class ParticleFilter(nn.Module):
         for obs in tqdm(observations, total=total, desc=type(self).__name__, disable=not self.progress):
             with torch.set_grad_enabled(grad):
                 state = self.step(state, obs, generator)
+                if hook is not None:
+                    state = hook(state, obs, generator)
             yield state
 
     # ------------------------------------------------------------------ building blocks for subclasses

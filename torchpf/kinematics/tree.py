@@ -279,6 +279,14 @@ def children_of(parents: Sequence[int]) -> dict[int, list[int]]:
     return children
 
 
+def subtree_of(children: dict[int, list[int]], j: int) -> list[int]:
+    """Joint ``j`` and every joint below it (depth first), from a :func:`children_of` map."""
+    out = [j]
+    for c in children[j]:
+        out += subtree_of(children, c)
+    return out
+
+
 def partition_labels(parents: Sequence[int], rest: Tensor) -> Tensor:
     """``joint_part`` (J,) of :class:`KinematicTree`: 0 torso, ``k`` the ``k``-th limb, -1 neither.
 
@@ -292,10 +300,7 @@ def partition_labels(parents: Sequence[int], rest: Tensor) -> Tensor:
     children = children_of(parents)
 
     def subtree(j):
-        out = [j]
-        for c in children[j]:
-            out += subtree(c)
-        return out
+        return subtree_of(children, j)
 
     labels = [-1] * J
     if -1 not in parents:
