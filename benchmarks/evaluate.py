@@ -912,6 +912,13 @@ FOREIGN_SETUPS: dict[str, Callable[..., Any]] = {
         filter="hybrid", filter_options={"refine_mode": "estimate"}
     ),
     "calibrated_hybrid": calibrated_setup(filter="hybrid"),
+    # the refinement cue's truncation (default 6 px) at 10 and 20 px, as compared in BENCHMARKS.md
+    "hybrid_tau10": tracker_setup(
+        filter="hybrid", filter_options={"refine_options": {"cue_options": {"tau": 10.0}}}
+    ),
+    "hybrid_tau20": tracker_setup(
+        filter="hybrid", filter_options={"refine_options": {"cue_options": {"tau": 20.0}}}
+    ),
     "calibrated_hybrid_particles": calibrated_setup(
         filter="hybrid", filter_options={"refine_mode": "particles", "refine_prior": True}
     ),

@@ -761,7 +761,9 @@ class Recovery:
                 # root is still over the person
                 state = self._reacquire(state, obs, det, generator)
                 self._gap = False
-                lost = True  # this frame's track was lost; the next frames say whether it came back
+                # lost when the root was off the person; a re-search after a gap alone is no failure
+                lost = dist > self.distance
+                recovered = was_lost and not lost
             else:
                 recovered = was_lost
                 self._lls.append(ll)

@@ -87,7 +87,7 @@ class TrackResult:
         ess: (T,) effective sample size after weighting (Brubaker eq. 18).
         log_evidence: log p(z_{1:T}) estimate (see the filter's docstring for what the APF reports).
         failed: (T,) bool, frames where every weight was -inf/NaN (predicted particles kept), or where the
-            track was judged lost (:class:`torchpf.detect.Recovery`).
+            track was judged lost (:class:`torchpf.detect.Recovery`) although the frame had evidence.
         no_evidence: (T,) bool, frames whose observations cannot tell poses apart (no camera with a usable
             mask, no points, no keypoints: :meth:`~torchpf.observations.Frame.has_evidence`); their
             estimate is the motion prior's prediction.
@@ -577,8 +577,12 @@ class Tracker(nn.Module):
             stats["temperature"] = self.likelihood.beta.detach().cpu().clone()
         failed = per_frame["failed"]
         recovered = torch.zeros_like(failed)
+        no_evidence = ~torch.tensor(evidence, dtype=torch.bool).reshape(failed.shape)
         if hook is not None:
-            failed = failed | torch.tensor(hook.lost, dtype=torch.bool).reshape(failed.shape)
+            # a frame nobody can see is reported as no_evidence, not as lost: "failed" means the track was
+            # lost while the masks showed the person (the recovery still re-acquires after an occlusion)
+            lost = torch.tensor(hook.lost, dtype=torch.bool).reshape(failed.shape)
+            failed = failed | (lost & ~no_evidence)
             recovered = torch.tensor(hook.recovered, dtype=torch.bool).reshape(failed.shape)
         return TrackResult(
             dof_names=list(self.skeleton.dof_names),
@@ -591,7 +595,7 @@ class Tracker(nn.Module):
             stats=stats,
             seconds=seconds,
             likelihood_evaluations=self.likelihood_evaluations,
-            no_evidence=~torch.tensor(evidence, dtype=torch.bool),
+            no_evidence=no_evidence,
             recovered=recovered,
             skeleton=self.skeleton,
             init=how,

@@ -101,5 +101,5 @@ def test_keypoints_npz_errors_name_the_file(tmp_path):
     with pytest.raises(ValueError, match="keypoints.npz: not a readable keypoints .npz file"):
         read_sequence(tmp_path)
     np.savez(tmp_path / "keypoints.npz", uv=np.full((2, 1, 3, 2), np.inf), joints=np.array(["a", "b", "c"]))
-    with pytest.raises(ValueError, match="keypoints.npz: uv holds infinite values"):
+    with pytest.raises(ValueError, match="keypoints.npz: 'uv' holds infinite values"):
         read_sequence(tmp_path)

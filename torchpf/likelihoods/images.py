@@ -270,7 +270,9 @@ class SilhouetteDistanceLikelihood(ImageLikelihood):
 
     Args:
         sigma: pixels; the per-camera RMS point distance that costs one nat (scale with the mask size).
-        tau: pixels; truncation of each point's distance.
+        tau: pixels; truncation of each point's distance. 6 (about a limb's width at 160x120) was better
+            than 10 and 20 on foreign renders with mask defects (a limb missing from one camera, merged
+            limbs: a point beyond ``tau`` no longer pulls) and no worse on clean ones (BENCHMARKS.md).
         n_body, n_cap: model area points per capsule body / end cap.
         n_samples: ``N_s`` foreground samples per camera.
         despeckle: median filter size (pixels) applied to the masks first
@@ -291,7 +293,7 @@ class SilhouetteDistanceLikelihood(ImageLikelihood):
         cameras,
         *,
         sigma: float = 2.0,
-        tau: float = 20.0,
+        tau: float = 6.0,
         n_body: int = 8,
         n_cap: int = 2,
         n_samples: int = 128,
