@@ -216,9 +216,11 @@ def _track(args) -> int:
     if args.config:
         import yaml
 
+        from torchpf.io import load_yaml
+
         with open(_require_file(args.config, "config"), encoding="utf-8") as f:
             try:
-                loaded = yaml.safe_load(f) or {}
+                loaded = load_yaml(f.read()) or {}  # plain numbers only (no "1_000")
             except yaml.YAMLError as e:
                 raise CliError(f"{args.config}: invalid YAML ({' '.join(str(e).split())})") from None
         if not isinstance(loaded, dict):

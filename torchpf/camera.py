@@ -47,7 +47,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from torchpf.io import write_atomic
+from torchpf.io import load_yaml, write_atomic
 
 __all__ = [
     "Camera",
@@ -772,7 +772,7 @@ def load_cameras(path: str | os.PathLike) -> CameraRig:
     if _is_filestorage(text):
         return load_opencv_camera(path)
     try:
-        data = yaml.safe_load(text)
+        data = load_yaml(text)  # plain numbers only: "1_000" is no width
     except yaml.YAMLError as e:
         raise CameraFileError(f"{path}: not valid YAML ({e})") from None
     if not isinstance(data, Mapping):

@@ -59,6 +59,33 @@ def plain_float(text: str) -> float:
     return float(stripped)
 
 
+def load_yaml(text: str):
+    """``yaml.safe_load(text)`` where only plain ASCII decimal numbers are numbers: YAML 1.1's ``1_000``
+    (digit groups), ``0x1f``, ``0o17`` and ``1:30`` (sexagesimal) stay strings, so a loader's type check
+    refuses them with its own message naming the key, instead of silently reading 1000, 31, 15 or 90 (a
+    camera named ``0_1`` would become the integer 1). Exponents without a dot (``1e-3``) are floats."""
+    import yaml
+
+    int_tag, float_tag = "tag:yaml.org,2002:int", "tag:yaml.org,2002:float"
+
+    class Loader(yaml.SafeLoader):
+        pass
+
+    Loader.yaml_implicit_resolvers = {
+        first: [(tag, rx) for tag, rx in resolvers if tag not in (int_tag, float_tag)]
+        for first, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()
+    }
+    Loader.add_implicit_resolver(int_tag, re.compile(r"^[-+]?[0-9]+$"), list("-+0123456789"))
+    Loader.add_implicit_resolver(
+        float_tag,
+        re.compile(
+            r"^[-+]?(?:[0-9]+\.[0-9]*|\.[0-9]+|[0-9]+)(?:[eE][-+]?[0-9]+)?$|^[-+]?\.(?:inf|Inf|INF)$|^\.(?:nan|NaN|NAN)$"
+        ),
+        list("-+0123456789."),
+    )
+    return yaml.load(text, Loader=Loader)  # noqa: S506 (a SafeLoader with narrower number resolvers)
+
+
 def plain_int(text: str) -> int:
     """``int(text)`` for plain ASCII digits with an optional sign (no ``1_000``, no non-ASCII digits)."""
     stripped = text.strip(" \t\r\n")

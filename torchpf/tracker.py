@@ -347,10 +347,12 @@ class Tracker(nn.Module):
         if not isinstance(config, Mapping):
             import yaml
 
+            from torchpf.io import load_yaml
+
             path = os.fspath(config)
             try:
                 with open(path, encoding="utf-8") as f:
-                    loaded = yaml.safe_load(f) or {}
+                    loaded = load_yaml(f.read()) or {}  # plain numbers only (no "1_000")
             except yaml.YAMLError as e:
                 raise ValueError(f"{path}: invalid YAML ({e})") from None
             if not isinstance(loaded, Mapping):

@@ -348,3 +348,25 @@ def test_learnable_rig_parameters(device):
     assert not torch.allclose(R[1].cpu(), rig.R[1]) and torch.equal(R[0].cpu(), rig.R[0])
     with pytest.raises(ValueError, match="learnable"):
         CameraRig(rig, learnable=["f"])
+
+
+def test_yaml_numbers_are_plain_decimals(tmp_path):
+    """YAML 1.1 reads 1_000 as 1000 and 0x1f as 31: cameras.yaml and tracker configs take plain numbers."""
+    from torchpf.io import load_yaml
+
+    assert load_yaml("a: 1_000\nb: 0x1f\nc: 1:30\nd: 1e-3\ne: -2.5\nf: 12") == {
+        "a": "1_000",
+        "b": "0x1f",
+        "c": "1:30",
+        "d": 1e-3,
+        "e": -2.5,
+        "f": 12,
+    }
+    cam = random_camera(np.random.default_rng(1))
+    cam.name = "c0"
+    path = tmp_path / "cameras.yaml"
+    save_cameras(path, [cam])
+    text = path.read_text()
+    path.write_text(text.replace(f"width: {cam.width}", "width: 1_000", 1))
+    with pytest.raises(ValueError, match="cameras.yaml.*width"):
+        load_cameras(path)
