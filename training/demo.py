@@ -179,7 +179,7 @@ def main(argv: list[str] | None = None) -> int:
         "APF + random walk": dict(filter="apf", dynamics="random_walk", dynamics_options=rw),
         "PARTITIONED + random walk": dict(filter="partitioned", dynamics="random_walk", dynamics_options=rw),
         "CONDENSATION + action model": dict(
-            filter="sir", dynamics="action", dynamics_options={"model": model_path}
+            filter="sir", dynamics="action", dynamics_options={"model": model_path, **rw}
         ),
     }
     truth = skel.fk(angles)
