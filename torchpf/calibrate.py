@@ -49,6 +49,7 @@ import torch
 from torchpf.camera import CameraRig
 from torchpf.geometry import project_capsules, sample_in_capsules
 from torchpf.kinematics.tree import body_partition, children_of
+from torchpf.observations import Silhouettes
 
 __all__ = ["CalibrationReport", "bone_groups", "fit_body", "overlay_image"]
 
@@ -486,7 +487,6 @@ def fit_body(
     grid_v, grid_u = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
     grid = torch.stack([grid_u, grid_v], -1).reshape(-1, 2).to(dtype)
     from torchpf.likelihoods.images import _distance_lookup
-    from torchpf.sensors import distance_image
 
     def capsules(joints, radii):
         return project_capsules(rig, joints[:, bones[:, 0]], joints[:, bones[:, 1]], radii)
@@ -505,11 +505,7 @@ def fit_body(
         pixels.update(uv=uv, view=view, pix=pix, cap=cap, target=target.reshape(-1)[rows].to(dtype))
 
     # distance (px) from each pixel to the silhouette, 0 inside; its zero level is the pixel edge
-    outside = [
-        torch.from_numpy(distance_image(hard[f, v])).to(dtype).sub(0.5).clamp_min(0.0)
-        for f in range(F)
-        for v in range(V)
-    ]
+    outside = Silhouettes(torch.from_numpy(hard)).outside_distance().to(dtype).reshape(F * V, H, W)
     has_mask = torch.from_numpy(hard.any((2, 3)) & valid).to(dtype)
     n_views = max(1.0, float(valid.sum()))
 

@@ -109,9 +109,8 @@ class Refiner(nn.Module):
         return int(math.ceil(n_poses * (self.steps * self.cost_per_step + 1)))
 
     def clamp(self, x: Tensor) -> Tensor:
-        """Poses ``x (..., D)`` projected onto the skeleton's joint limits."""
-        lower, upper = self.skeleton.lower.to(x), self.skeleton.upper.to(x)
-        return torch.minimum(torch.maximum(x, lower), upper)
+        """Poses ``x (..., D)`` projected onto the skeleton's joint limits (:meth:`Skeleton.clamp`)."""
+        return self.skeleton.clamp(x)
 
     def objective(self, x: Tensor, obs, log_prior=None) -> Tensor:
         """``E(x) (..., K)`` for poses ``x (..., K, D)``; ``log_prior``: ``x -> (..., K)`` or None."""

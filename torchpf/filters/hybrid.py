@@ -158,13 +158,10 @@ class HybridParticleFilter(AnnealedParticleFilter):
         dim = x.ndim - 2  # the particle dim, also of the extras (..., N, *e)
         extras_k = {key: gather_particles(v, top) for key, v in extras_prev.items()}
         if estimate:
-            p = normalise(log_w).exp().unsqueeze(-1)
-
-            def mean(v):  # weighted mean; a zero-weight particle (a NaN one among them) does not count
-                return torch.where(p > 0, p * v, 0.0).sum(-2, keepdim=True)
-
-            xk = torch.cat([mean(x), xk], -2)  # the weighted mean, as a candidate
-            prev = torch.cat([mean(x_prev), prev], -2)
+            # the weighted mean as a candidate (ParticleState.mean: zero-weight NaN particles do not count)
+            mean = state.replace(particles=x, log_weights=log_w).mean().unsqueeze(-2)
+            mean_prev = state.replace(particles=x_prev, log_weights=log_w).mean().unsqueeze(-2)
+            xk, prev = torch.cat([mean, xk], -2), torch.cat([mean_prev, prev], -2)
             extras_k = {key: torch.cat([v.narrow(dim, 0, 1), v], dim) for key, v in extras_k.items()}
         log_prior = None
         if self.refine_prior:
