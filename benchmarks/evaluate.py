@@ -899,6 +899,9 @@ FOREIGN_SETUPS: dict[str, Callable[..., Any]] = {
     ),
     "bidir_partitioned_cv": tracker_setup(**_BIDIR, filter="partitioned", dynamics="constant_velocity"),
     "bidir_partitioned_damped": tracker_setup(**_BIDIR, filter="partitioned", dynamics="damped"),
+    # issue 12: each filter with the default cue and prior, compared at 100 / 500 / 2,000 evaluations
+    "apf": tracker_setup(filter="apf"),
+    "partitioned": tracker_setup(filter="partitioned"),
     # issue 12: the hybrid filter (APF layers + gradient refinement, torchpf.filters.hybrid), same budget
     "hybrid": tracker_setup(filter="hybrid"),
     "hybrid_particles": tracker_setup(
@@ -938,7 +941,7 @@ class ForeignConfig:
     setups: tuple[str, ...] = ("before", "defaults")  # FOREIGN_SETUPS
     frames: int = 60  # K per clip (the runs are shorter: ~34 frames at 30 fps)
     fps: float = 30.0
-    particles: int = 500  # likelihood evaluations per frame
+    particles: tuple[int, ...] = (500,)  # likelihood evaluations per frame, one or several budgets
     runs: int = 1  # seeds seed..seed+runs-1 per (clip, preset, setup)
     mask_size: tuple[int, int] = (160, 120)
     joints: str = "body"  # "body": BodyPlan.eval_joints (15, found structurally) or "all"
@@ -952,6 +955,9 @@ class ForeignConfig:
         from benchmarks.foreign import PRESETS
 
         self.clips, self.presets, self.setups = tuple(self.clips), tuple(self.presets), tuple(self.setups)
+        if isinstance(self.particles, int):
+            self.particles = (self.particles,)
+        self.particles = tuple(int(n) for n in self.particles)
         self.mask_size = tuple(int(v) for v in self.mask_size)
         for what, names, known in (
             ("preset", self.presets, PRESETS),
@@ -960,7 +966,7 @@ class ForeignConfig:
             bad = [n for n in names if n not in known]
             if bad or not names:
                 raise ValueError(f"unknown {what}(s) {bad}; choose from {list(known)}")
-        if self.frames < 2 or self.runs < 1 or self.particles < 1:
+        if self.frames < 2 or self.runs < 1 or not self.particles or min(self.particles) < 1:
             raise ValueError("need frames >= 2, runs >= 1 and particles >= 1")
         if self.joints not in ("body", "all"):
             raise ValueError(f"joints must be 'body' or 'all', got {self.joints!r}")
@@ -975,13 +981,25 @@ class ForeignResult:
     rows: list[dict] = field(default_factory=list)
     seconds: float = 0.0
 
+    def cells(self) -> list[tuple[str, int]]:
+        """(setup, budget) pairs in table order: each setup at each budget."""
+        return [(setup, n) for setup in self.config.setups for n in self.config.particles]
+
+    def label(self, setup: str, budget: int) -> str:
+        """A table row's name: the setup, with its budget when the run has several."""
+        return f"{setup} @{budget}" if len(self.config.particles) > 1 else setup
+
     def means(self) -> list[dict]:
-        """Per preset x setup: the criteria averaged over the clips (``clip == "mean"``)."""
+        """Per preset x setup x budget: the criteria averaged over the clips (``clip == "mean"``)."""
         keys = ("mpjpe", "rmse", "failure_rate", "frame_failure", "mean_ess", "seconds_per_frame")
         out = []
         for preset in self.config.presets:
-            for setup in self.config.setups:
-                sel = [r for r in self.rows if r["preset"] == preset and r["setup"] == setup]
+            for setup, budget in self.cells():
+                sel = [
+                    r
+                    for r in self.rows
+                    if r["preset"] == preset and r["setup"] == setup and r["particles"] == budget
+                ]
                 if sel:
                     mean = {k: float(np.mean([r[k] for r in sel])) for k in keys}
                     frames = sum(r["frames"] for r in sel)
@@ -992,6 +1010,7 @@ class ForeignResult:
                             "action": "",
                             "preset": preset,
                             "setup": setup,
+                            "particles": budget,
                             **mean,
                             "fps": frames / max(seconds, 1e-12),
                             "frames": frames,
@@ -1032,7 +1051,7 @@ def run_foreign(cfg: ForeignConfig, out: str | os.PathLike = "out/foreign", prog
     if progress:
         from tqdm import tqdm
 
-        total = len(clips) * len(cfg.presets) * len(cfg.setups) * cfg.runs
+        total = len(clips) * len(cfg.presets) * len(cfg.setups) * len(cfg.particles) * cfg.runs
         bar = tqdm(total=total, desc="foreign tracking runs", unit="run", file=sys.stderr)
     for clip in clips:
         for preset in cfg.presets:
@@ -1052,11 +1071,11 @@ def run_foreign(cfg: ForeignConfig, out: str | os.PathLike = "out/foreign", prog
             with torch.no_grad():
                 truth = skel.fk(truth_angles)[:, joints]
             K = len(truth)
-            for name in cfg.setups:
+            for name, budget in result.cells():
                 estimates, seconds, totals, ess = [], [], [], []
                 for r in range(cfg.runs):
                     t0 = time.perf_counter()
-                    made = FOREIGN_SETUPS[name](seq.path, skel, n_particles=cfg.particles, seed=cfg.seed + r)
+                    made = FOREIGN_SETUPS[name](seq.path, skel, n_particles=budget, seed=cfg.seed + r)
                     track = made if isinstance(made, TrackResult) else made.track(seq.path, seed=cfg.seed + r)
                     totals.append(time.perf_counter() - t0)
                     # a setup that fitted the body tracks with its own skeleton: its joints are the estimate
@@ -1075,6 +1094,7 @@ def run_foreign(cfg: ForeignConfig, out: str | os.PathLike = "out/foreign", prog
                         "action": index.get(clip, "mocap"),
                         "preset": preset,
                         "setup": name,
+                        "particles": budget,
                         "frames": K,
                         "joints": len(joints),
                         "camera_radius": seq.info["camera_radius"],
@@ -1093,7 +1113,7 @@ def run_foreign(cfg: ForeignConfig, out: str | os.PathLike = "out/foreign", prog
                 if log is not None:
                     row = result.rows[-1]
                     log(
-                        f"{clip} {preset} {name}: MPJPE {row['mpjpe'] * 1000:.0f} mm, "
+                        f"{clip} {preset} {result.label(name, budget)}: MPJPE {row['mpjpe'] * 1000:.0f} mm, "
                         f"frames failed {row['frame_failure'] * 100:.0f} %"
                     )
     if bar is not None:
@@ -1113,7 +1133,8 @@ def foreign_markdown(result: ForeignResult) -> str:
     def line(r, bold=False):
         b = "**" if bold else ""
         return (
-            f"| {b}{r['clip']}{b} | {r['action']} | {r['setup']} | {b}{r['mpjpe'] * 1000:.0f}{b} "
+            f"| {b}{r['clip']}{b} | {r['action']} | {result.label(r['setup'], r['particles'])} "
+            f"| {b}{r['mpjpe'] * 1000:.0f}{b} "
             f"| {r['rmse'] * 1000:.0f} | {r['failure_rate'] * 100:.1f} "
             f"| {b}{r['frame_failure'] * 100:.0f}{b} "
             f"| {r['mean_ess']:.1f} | {r['seconds_per_frame']:.3f} | {r['fps']:.1f} |"
@@ -1125,7 +1146,8 @@ def foreign_markdown(result: ForeignResult) -> str:
         "",
         f"{len({r['clip'] for r in result.rows})} CMU clips, up to {cfg.frames} frames at {cfg.fps:g} fps "
         f"(clips give {frames[0]}-{frames[-1]}), 3 cameras, {cfg.mask_size[0]}x{cfg.mask_size[1]} masks "
-        f"rendered by benchmarks/foreign.py; {cfg.particles} likelihood evaluations per frame; "
+        f"rendered by benchmarks/foreign.py; {', '.join(map(str, cfg.particles))} likelihood evaluations "
+        "per frame; "
         f"{cfg.runs} run(s); {'15 structural body' if cfg.joints == 'body' else 'all'} joints; "
         f"T_failure = {cfg.threshold} m. Failure: Fontmarty eq. 6 (joint-frames beyond T); frames failed: "
         "frames with any joint beyond T. "
@@ -1139,13 +1161,15 @@ def foreign_markdown(result: ForeignResult) -> str:
         "|---|" + "---|---|" * len(cfg.presets) + "---|",
     ]
     means = result.means()
-    for setup in cfg.setups:
+    for setup, budget in result.cells():
         cells, fps = [], []
         for preset in cfg.presets:
-            m = next(r for r in means if r["preset"] == preset and r["setup"] == setup)
+            m = next(
+                r for r in means if r["preset"] == preset and r["setup"] == setup and r["particles"] == budget
+            )
             cells.append(f"{m['mpjpe'] * 1000:.0f} | {m['frame_failure'] * 100:.0f}")
             fps.append(m["fps"])
-        parts.append(f"| {setup} | " + " | ".join(cells) + f" | {np.mean(fps):.1f} |")
+        parts.append(f"| {result.label(setup, budget)} | " + " | ".join(cells) + f" | {np.mean(fps):.1f} |")
     for preset in cfg.presets:
         parts += ["", f"### {preset} masks", "", head, "|" + "---|" * 10]
         parts += [line(r) for r in result.rows if r["preset"] == preset]
@@ -1280,8 +1304,6 @@ def config_from_args(args: argparse.Namespace) -> EvalConfig:
 def foreign_config_from_args(args: argparse.Namespace) -> ForeignConfig:
     """ForeignConfig from the CLI (``--renderer foreign``); options left out keep ForeignConfig's defaults."""
     d = ForeignConfig()
-    if args.particles is not None and len(args.particles) != 1:
-        raise ValueError(f"--renderer foreign takes one --particles budget, got {args.particles}")
 
     def names(text, default):
         return default if text is None else tuple(s for s in text.split(",") if s)
@@ -1292,7 +1314,7 @@ def foreign_config_from_args(args: argparse.Namespace) -> ForeignConfig:
         setups=names(args.setups, d.setups),
         frames=d.frames if args.frames is None else args.frames,
         fps=d.fps if args.fps is None else args.fps,
-        particles=d.particles if args.particles is None else args.particles[0],
+        particles=d.particles if args.particles is None else tuple(args.particles),
         runs=d.runs if args.runs is None else args.runs,
         mask_size=d.mask_size if args.mask_size is None else tuple(args.mask_size),
         joints=args.joints,

@@ -59,8 +59,8 @@ def _parser() -> argparse.ArgumentParser:
     )
     tr.add_argument(
         "--filter",
-        help="sir, qrs, partitioned, partitioned_qrs, apf, mcmc, hybrid (APF + gradient refinement; best "
-        "with a calibrated body) (default apf)",
+        help="sir, qrs, partitioned, partitioned_qrs, apf, mcmc, hybrid (APF + gradient refinement on the "
+        "silhouettes), auto (default: hybrid where silhouettes and cameras are given, else apf)",
     )
     tr.add_argument("--particles", type=int, help="likelihood evaluations per frame (default 500)")
     tr.add_argument(
@@ -77,6 +77,12 @@ def _parser() -> argparse.ArgumentParser:
         "--init",
         help="initial pose: truth (truth.csv frame 0; the default when present), auto (found from the "
         "masks alone; an uncalibrated body is fitted, its URDF written next to --out), or a mocap CSV",
+    )
+    tr.add_argument(
+        "--no-calibrate",
+        action="store_true",
+        help="track on the skeleton as given, even when its body looks uncalibrated (by default such a "
+        "body is fitted to frame 0's masks first, its URDF written next to --out)",
     )
     tr.add_argument("--no-recovery", action="store_true", help="do not re-acquire a lost track")
     tr.add_argument("--device", help="cpu or cuda")
@@ -268,7 +274,8 @@ def _track(args) -> int:
             f"{args.sequence}: no truth.csv for the initial pose; pass --init auto or --init POSE.csv"
         )
     # the CSV is written as frames are tracked: OUT.partial keeps the finished frames if the run stops
-    result = tracker.track(seq, seed=args.seed, init=init, out=args.out)
+    calibrate = False if args.no_calibrate else None
+    result = tracker.track(seq, seed=args.seed, init=init, out=args.out, calibrate=calibrate)
     n_failed = int(result.failed.sum())
     blind = result.no_evidence.nonzero().flatten().tolist()
     print(
@@ -292,10 +299,10 @@ def _track(args) -> int:
             format_frames(f.nonzero().flatten().tolist()) or "none" for f in (result.failed, result.recovered)
         )
         print(f"failed frames: {failed}; recovered at frames: {recovered}")
-    if result.skeleton is not skel:  # init auto fitted the body: the track's angles belong to it
+    if result.skeleton is not skel:  # the body was fitted first: the track's angles belong to it
         fitted = os.path.splitext(args.out)[0] + "_fitted.urdf"
         result.skeleton.save_urdf(fitted)
-        print(f"init auto: fitted the body to frame 0's masks; wrote {fitted} (the track's skeleton)")
+        print(f"fitted the body to frame 0's masks; wrote {fitted} (the track's skeleton)")
     if seq.truth is not None:
         from torchpf import metrics
 

@@ -55,7 +55,14 @@ from torchpf.filters.weights import temper
 from torchpf.kinematics.tree import body_partition, children_of, subtree_of
 from torchpf.resampling import RESAMPLERS
 
-__all__ = ["Detection", "PersonDetector", "looks_uncalibrated", "silhouette_masks", "visual_hull"]
+__all__ = [
+    "Detection",
+    "PersonDetector",
+    "fit_body_to_frame",
+    "looks_uncalibrated",
+    "silhouette_masks",
+    "visual_hull",
+]
 
 
 # ---------------------------------------------------------------------------------------------- hull
@@ -101,6 +108,26 @@ def silhouette_masks(obs) -> tuple[Tensor, Tensor] | None:
     valid = getattr(sil, "valid", None)
     valid = torch.ones(masks.shape[0], dtype=torch.bool) if valid is None else valid.bool().cpu()
     return masks.cpu().float() > 0.5 * float(masks.max().clamp_min(1e-9)), valid
+
+
+def fit_body_to_frame(skeleton, cameras, obs, pose: Tensor, *, iterations: int = 200):
+    """:func:`torchpf.calibrate.fit_body` on one frame's silhouettes (a :class:`Frame`, :class:`Silhouettes`
+    or (V, H, W) masks) from an approximate ``pose (D,)``: capsule radii, global scale and the pose refined
+    together. Returns ``(fitted skeleton, CalibrationReport)``; ``report.poses[0]`` is the refined pose."""
+    from torchpf.calibrate import fit_body
+
+    got = silhouette_masks(obs)
+    if got is None:
+        raise ValueError("fitting the body needs silhouettes")
+    masks, valid = got
+    frame = [
+        [
+            m.numpy().astype(np.uint8) * 255 if ok else None
+            for m, ok in zip(masks, valid.tolist(), strict=True)
+        ]
+    ]
+    pose = torch.as_tensor(pose, dtype=torch.float64).cpu()
+    return fit_body(skeleton, cameras, frame, pose[None], frames_used=1, iterations=iterations)
 
 
 def _triangulate_centroids(rig, masks: Tensor, valid: Tensor) -> Tensor | None:
@@ -520,26 +547,15 @@ class PersonDetector:
             ``(pose (D,), fitted, report)``: the refined pose, the fitted skeleton (radii, scale) and its
             :class:`~torchpf.calibrate.CalibrationReport`; raises ValueError when no person is detected.
         """
-        from torchpf.calibrate import fit_body
-
         det = det if det is not None else self.detect(obs)
         if det is None:
             raise ValueError("no person found in the silhouettes (fewer than two cameras see one)")
-        masks, valid = silhouette_masks(obs)
-        frame = [
-            [
-                m.numpy().astype(np.uint8) * 255 if ok else None
-                for m, ok in zip(masks, valid.tolist(), strict=True)
-            ]
-        ]
         headings = [h for group in self.heading_choices(det, motion) for h in group[len(group) // 2 :][:1]]
         cand = self.candidates(det, headings).reshape(len(headings), len(self.postures), -1)[:, :3]
         cand = cand.reshape(-1, cand.shape[-1])
 
         def run(pose, steps):
-            fitted, report = fit_body(
-                self.skeleton, self.cameras, frame, pose[None], frames_used=1, iterations=steps
-            )
+            fitted, report = fit_body_to_frame(self.skeleton, self.cameras, obs, pose, iterations=steps)
             return report.loss[-1], fitted, report
 
         quick_fits = sorted((run(p, quick)[0], k) for k, p in enumerate(cand))

@@ -197,7 +197,7 @@ def test_foreign_evaluation_smoke(tmp_path):
         ]
     )
     cfg = ev.foreign_config_from_args(args)
-    assert cfg.setups == ("before", "defaults") and cfg.fps == 30.0 and cfg.particles == 30
+    assert cfg.setups == ("before", "defaults") and cfg.fps == 30.0 and cfg.particles == (30,)
     result = ev.run_foreign(cfg, tmp_path)
     assert [row["setup"] for row in result.rows] == ["before", "defaults"]
     for row in result.rows:

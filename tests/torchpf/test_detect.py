@@ -94,7 +94,7 @@ def test_init_from_truth_csv_or_error(case, tmp_path):
         tracker.track(case.frames[:2])  # no ground truth in a list of frames
     csv = tmp_path / "pose.csv"
     write_mocap_csv(csv, case.skeleton.dof_names, case.angles[:1].numpy())
-    result = tracker.track(case.frames[:2], init=csv)
+    result = tracker.track(case.frames[:2], init=csv, calibrate=False)  # the body as given: the CSV's pose
     assert result.init == "pose" and torch.allclose(result.angles[0], case.angles[0], atol=0.3)
 
 
@@ -134,4 +134,25 @@ def test_cli_init_auto_without_truth(case, tmp_path, capsys):
         warnings.simplefilter("ignore")
         assert main([*args, "--init", "auto", "--particles", "60"]) == 0
     assert out.is_file() and (tmp_path / "track_fitted.urdf").is_file()
-    assert "init auto: fitted the body" in capsys.readouterr().out
+    assert "fitted the body to frame 0" in capsys.readouterr().out
+
+
+def test_track_fits_an_uncalibrated_body_at_the_initial_pose(case):
+    """A converted skeleton's stick-figure body is fitted to frame 0's masks at the given pose before
+    tracking (warned; result.skeleton is the fitted body); calibrate=False tracks the body as given."""
+    tracker = Tracker(case.skeleton, case.cameras, n_particles=60, fps=30.0, progress=False)
+    frames = case.frames[:4]
+    with pytest.warns(UserWarning, match="looks uncalibrated"):
+        fitted = tracker.track(frames, init=case.angles[0])
+    assert fitted.skeleton is not case.skeleton and not looks_uncalibrated(fitted.skeleton)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no guess made, no warning
+        plain = tracker.track(frames, init=case.angles[0], calibrate=False)
+    assert plain.skeleton is case.skeleton
+    truth = case.skeleton.fk(case.angles[:4].double())[:, case.joints]
+
+    def mpjpe(result):
+        est = result.skeleton.fk(result.angles.double())[:, case.joints]
+        return float((est - truth).norm(dim=-1).mean())
+
+    assert mpjpe(fitted) < 0.08

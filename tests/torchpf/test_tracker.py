@@ -6,6 +6,7 @@ import torch
 from torchpf import Skeleton, metrics
 from torchpf.assets import path
 from torchpf.camera import camera_ring
+from torchpf.filters import HybridParticleFilter
 from torchpf.io import read_mocap_csv
 from torchpf.kinematics import body_partition
 from torchpf.likelihoods import ProductLikelihood, SilhouetteLikelihood
@@ -321,3 +322,24 @@ def test_hybrid_needs_cameras_or_a_cue(scene):
     skel = scene[0]
     with pytest.raises(ValueError, match="needs cameras"):
         Tracker(skel, None, likelihood="pointcloud", filter="hybrid", progress=False)
+
+
+def test_auto_filter_refines_where_silhouettes_give_the_cue(scene):
+    skel, cams, _, _ = scene
+    assert Tracker(skel, cams, progress=False).filter_name == "hybrid"
+    assert Tracker(skel, cams, likelihood="pointcloud", progress=False).filter_name == "apf"
+    assert Tracker(skel, None, likelihood="pointcloud", progress=False).filter_name == "apf"
+    assert Tracker(skel, cams, filter="sir", progress=False).filter_name == "sir"
+
+
+@pytest.mark.parametrize("budget", [30, 60, 100, 500])
+def test_hybrid_default_stays_within_a_small_budget(scene, budget):
+    skel, cams, _, _ = scene
+    tracker = Tracker(skel, cams, n_particles=budget, progress=False)
+    k, steps = tracker.filter.n_refine, tracker.filter.refiner.steps
+    assert (k, steps) == HybridParticleFilter.plan_refinement(budget)
+    assert tracker.filter.n_particles >= 1 and tracker.likelihood_evaluations <= budget
+    explicit = Tracker(
+        skel, cams, n_particles=budget, filter_options={"refine_options": {"steps": 3}}, progress=False
+    )
+    assert explicit.filter.refiner.steps == 3 and explicit.filter.n_refine == 4  # the user's choice stands

@@ -117,6 +117,27 @@ class HybridParticleFilter(AnnealedParticleFilter):
         extra = 2 * k if options.get("refine_mode", "recentre") == "particles" else 2
         return refiner.evaluations(k) + extra
 
+    @staticmethod
+    def plan_refinement(
+        budget: int, *, n_refine: int = 4, steps: int = 20, cost_per_step: float = 3.0, share: float = 0.5
+    ) -> tuple[int, int]:
+        """``(n_refine, steps)`` such that one frame's refinement costs at most ``share`` of a ``budget`` of
+        likelihood evaluations per frame (``K (steps c + 1) + 2``, :meth:`refine_evaluations`), the rest
+        left to the APF layers: ``K`` falls first (down to the mean alone), then the steps (down to 0, a
+        refinement that only looks). At 500 evaluations the defaults fit (246); at 100, 1 pose x 15 steps;
+        at 30, 1 x 4 (what ``Tracker`` uses when neither is given)."""
+        cap = share * int(budget)
+        k, steps = max(1, int(n_refine)), max(0, int(steps))
+
+        def cost(k_: int, s_: int) -> float:
+            return k_ * (s_ * cost_per_step + 1) + 2
+
+        while k > 1 and cost(k, steps) > cap:
+            k -= 1
+        if cost(k, steps) > cap:
+            steps = max(0, int(((cap - 2) / k - 1) // cost_per_step))
+        return k, steps
+
     @classmethod
     def for_budget(cls, budget: int, **options: Any) -> int:
         """Particles per layer such that the layers plus the refinement evaluate the likelihood at most

@@ -155,3 +155,16 @@ def test_bad_arguments():
         HybridParticleFilter(
             model.dynamics(), model.likelihood(), refiner=ShiftRefiner(0), refine_mode="x", diffusion_std=0.1
         )
+
+
+@pytest.mark.parametrize("budget", [1, 5, 10, 30, 60, 100, 250, 300, 500, 2000])
+def test_refinement_plan_fits_its_share_of_the_budget(budget):
+    k, steps = HybridParticleFilter.plan_refinement(budget)
+    cost = k * (3 * steps + 1) + 2  # the refiner's cost plus the check of the estimate (refine_evaluations)
+    assert 1 <= k <= 4 and 0 <= steps <= 20
+    assert cost <= max(0.5 * budget, 3)  # a budget under 6 still looks at the mean once (3 evaluations)
+    if (k, steps) != (4, 20):  # reduced: one more step (or pose) would exceed the share
+        bigger = (k, steps + 1) if k == 1 else (k + 1, steps)
+        assert bigger[0] * (3 * bigger[1] + 1) + 2 > 0.5 * budget
+    if budget >= 500:
+        assert (k, steps) == (4, 20)  # the defaults fit (246 evaluations)
