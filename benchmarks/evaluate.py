@@ -796,16 +796,20 @@ def _tracker(seq_dir: Path, skeleton: Skeleton, cameras, n_particles: int, **opt
     )
 
 
-def tracker_setup(**options: Any) -> Callable[..., Tracker]:
+_AS_GIVEN = {"calibrate": False}  # track the converted skeleton's body as it is
+
+
+def tracker_setup(track_options: Mapping[str, Any] | None = None, **options: Any) -> Callable[..., Tracker]:
     """A setup that builds ``Tracker(skel, cameras, n_particles=N, fps=..., **options)`` (the CLI with
-    those options)."""
+    those options), tracked with ``tracker.track(seq_dir, seed=..., **track_options)``."""
 
     def setup(seq_dir: Path, skeleton: Skeleton, *, n_particles: int = 500, **_) -> Tracker:
         from torchpf.sequence import read_sequence
 
         return _tracker(seq_dir, skeleton, read_sequence(seq_dir).cameras, n_particles, **options)
 
-    setup.__doc__ = f"Tracker options {options}"
+    setup.__doc__ = f"Tracker options {options}, track options {dict(track_options or {})}"
+    setup.track_options = dict(track_options or {})
     return setup
 
 
@@ -821,6 +825,7 @@ def setup_before(seq_dir: Path, skeleton: Skeleton, *, n_particles: int = 500, *
 
 #: The ``track`` defaults as they are now: ``Tracker(skel, cameras, n_particles=N)`` and nothing else.
 setup_defaults = tracker_setup()
+setup_before.track_options = _AS_GIVEN  # the old defaults tracked the body as given
 
 
 _BIDIR = {"likelihood": {"silhouette": 1.0, "dual_silhouette": 1.0}}
@@ -881,15 +886,15 @@ FOREIGN_SETUPS: dict[str, Callable[..., Any]] = {
     "defaults": setup_defaults,
     # candidates for the new defaults: the bidirectional silhouette cue with each filter, fixed or
     # first-frame-calibrated likelihood temperature
-    "bidir_apf": tracker_setup(**_BIDIR),
-    "bidir_apf_adaptive": tracker_setup(**_BIDIR, filter_options={"betas": "adaptive"}),
-    "bidir_partitioned": tracker_setup(**_BIDIR, filter="partitioned"),
-    "bidir_partitioned_auto": tracker_setup(**_BIDIR, filter="partitioned", temperature="auto"),
-    "bidir_sir": tracker_setup(**_BIDIR, filter="sir"),
+    "bidir_apf": tracker_setup(_AS_GIVEN, **_BIDIR),
+    "bidir_apf_adaptive": tracker_setup(_AS_GIVEN, **_BIDIR, filter_options={"betas": "adaptive"}),
+    "bidir_partitioned": tracker_setup(_AS_GIVEN, **_BIDIR, filter="partitioned"),
+    "bidir_partitioned_auto": tracker_setup(_AS_GIVEN, **_BIDIR, filter="partitioned", temperature="auto"),
+    "bidir_sir": tracker_setup(_AS_GIVEN, **_BIDIR, filter="sir"),
     "bidir_partitioned_table5": tracker_setup(
-        **_BIDIR, filter="partitioned", dynamics_options={"stds": "table5"}
+        _AS_GIVEN, **_BIDIR, filter="partitioned", dynamics_options={"stds": "table5"}
     ),
-    "calibrated": calibrated_setup(),  # fit_body, then the defaults
+    "calibrated": calibrated_setup(filter="apf"),  # fit_body, then the defaults of issue 11 (APF)
     "auto": auto_setup(),  # issue 13: no ground truth; detector + fit_body on frame 0, then the defaults
     "calibrated_bidir_partitioned": calibrated_setup(**_BIDIR, filter="partitioned"),
     "calibrated_bidir_sir": calibrated_setup(**_BIDIR, filter="sir"),
@@ -897,30 +902,33 @@ FOREIGN_SETUPS: dict[str, Callable[..., Any]] = {
     "calibrated_bidir_sir_table5": calibrated_setup(
         **_BIDIR, filter="sir", dynamics_options={"stds": "table5"}
     ),
-    "bidir_partitioned_cv": tracker_setup(**_BIDIR, filter="partitioned", dynamics="constant_velocity"),
-    "bidir_partitioned_damped": tracker_setup(**_BIDIR, filter="partitioned", dynamics="damped"),
-    # issue 12: each filter with the default cue and prior, compared at 100 / 500 / 2,000 evaluations
-    "apf": tracker_setup(filter="apf"),
-    "partitioned": tracker_setup(filter="partitioned"),
+    "bidir_partitioned_cv": tracker_setup(
+        _AS_GIVEN, **_BIDIR, filter="partitioned", dynamics="constant_velocity"
+    ),
+    "bidir_partitioned_damped": tracker_setup(_AS_GIVEN, **_BIDIR, filter="partitioned", dynamics="damped"),
+    # issue 12: each filter with the default cue and prior on the converted body as given (no fit of the
+    # body at frame 0, which track does by default to an uncalibrated-looking body), at 100 / 500 / 2,000
+    "apf": tracker_setup(_AS_GIVEN, filter="apf"),
+    "partitioned": tracker_setup(_AS_GIVEN, filter="partitioned"),
     # issue 12: the hybrid filter (APF layers + gradient refinement, torchpf.filters.hybrid), same budget
-    "hybrid": tracker_setup(filter="hybrid"),
+    "hybrid": tracker_setup(_AS_GIVEN, filter="hybrid"),
     "hybrid_particles": tracker_setup(
-        filter="hybrid", filter_options={"refine_mode": "particles", "refine_prior": True}
+        _AS_GIVEN, filter="hybrid", filter_options={"refine_mode": "particles", "refine_prior": True}
     ),
     "hybrid_particles_free": tracker_setup(
-        filter="hybrid", filter_options={"refine_mode": "particles", "refine_prior": False}
+        _AS_GIVEN, filter="hybrid", filter_options={"refine_mode": "particles", "refine_prior": False}
     ),
-    "hybrid_estimate": tracker_setup(filter="hybrid", filter_options={"refine_mode": "estimate"}),
+    "hybrid_estimate": tracker_setup(_AS_GIVEN, filter="hybrid", filter_options={"refine_mode": "estimate"}),
     "calibrated_hybrid_estimate": calibrated_setup(
         filter="hybrid", filter_options={"refine_mode": "estimate"}
     ),
     "calibrated_hybrid": calibrated_setup(filter="hybrid"),
     # the refinement cue's truncation (default 6 px) at 10 and 20 px, as compared in BENCHMARKS.md
     "hybrid_tau10": tracker_setup(
-        filter="hybrid", filter_options={"refine_options": {"cue_options": {"tau": 10.0}}}
+        _AS_GIVEN, filter="hybrid", filter_options={"refine_options": {"cue_options": {"tau": 10.0}}}
     ),
     "hybrid_tau20": tracker_setup(
-        filter="hybrid", filter_options={"refine_options": {"cue_options": {"tau": 20.0}}}
+        _AS_GIVEN, filter="hybrid", filter_options={"refine_options": {"cue_options": {"tau": 20.0}}}
     ),
     "calibrated_hybrid_particles": calibrated_setup(
         filter="hybrid", filter_options={"refine_mode": "particles", "refine_prior": True}
@@ -1076,7 +1084,12 @@ def run_foreign(cfg: ForeignConfig, out: str | os.PathLike = "out/foreign", prog
                 for r in range(cfg.runs):
                     t0 = time.perf_counter()
                     made = FOREIGN_SETUPS[name](seq.path, skel, n_particles=budget, seed=cfg.seed + r)
-                    track = made if isinstance(made, TrackResult) else made.track(seq.path, seed=cfg.seed + r)
+                    extra = getattr(FOREIGN_SETUPS[name], "track_options", {})
+                    track = (
+                        made
+                        if isinstance(made, TrackResult)
+                        else made.track(seq.path, seed=cfg.seed + r, **extra)
+                    )
                     totals.append(time.perf_counter() - t0)
                     # a setup that fitted the body tracks with its own skeleton: its joints are the estimate
                     body = track.skeleton if track.skeleton is not None else skel
