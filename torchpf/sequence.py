@@ -73,7 +73,7 @@ def load_truth_csv(path) -> tuple[torch.Tensor, list[str], np.ndarray | None]:
 class SequenceData:
     """A multi-camera sequence (synthetic in memory, or read from disk by :func:`read_sequence`).
 
-    Fields:
+    Attributes:
         cameras: :class:`~torchpf.camera.CameraRig` of the mask cameras (``V``), in mask order.
         masks: T rows of V (H, W) masks (uint8 0/255; 0/1, bool and 16-bit are read alike by
             :func:`~torchpf.observations.binary_mask`), None for a missing mask. A list, or the

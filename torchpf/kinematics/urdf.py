@@ -331,7 +331,7 @@ def parse_urdf_xml(xml: str, source: str) -> ET.Element:
         raise ValueError(f"{source}: invalid URDF XML ({e})") from None
 
 
-#: Largest |coordinate| (m) of a URDF origin, limit or geometry size: beyond it the float32 parse of
+#: Largest ``|coordinate|`` (m) of a URDF origin, limit or geometry size: beyond it the float32 parse of
 #: pytorch-kinematics and the FK products overflow or lose every digit of a human-sized body.
 MAX_COORDINATE = 1e6
 
