@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 
 import torch
 
@@ -73,6 +74,12 @@ def _parser() -> argparse.ArgumentParser:
         help="exponent on the log-likelihood: a number, or auto (set on the first frame for ESS/N = 0.2)",
     )
     tr.add_argument("--init-spread", type=float, help="std of the initial particles (rad / m)")
+    tr.add_argument(
+        "--fps",
+        type=float,
+        help="frame rate of the sequence (Hz), for the motion prior and the output's time column "
+        "(default: truth.csv's time column; without one 30, said on stderr)",
+    )
     tr.add_argument(
         "--init",
         help="initial pose: truth (truth.csv frame 0; the default when present), auto (found from the "
@@ -187,6 +194,41 @@ def _require_file(path: str, what: str) -> str:
     return path
 
 
+#: What ``track`` assumes for a sequence without timestamps and without ``--fps`` (and says so).
+_DEFAULT_FPS = 30.0
+
+
+def _frame_rate(args, seq, configured) -> float:
+    """The tracking frame rate (Hz): ``--fps``, else the config's ``fps``, else the sequence's timestamps,
+    else :data:`_DEFAULT_FPS` with a warning on stderr (the prior's per-frame stds and the output's time
+    column depend on it: never assumed silently)."""
+    fps = args.fps if args.fps is not None else configured
+    times = seq.times if seq.times is not None and len(seq.times) > 1 else None
+    from_times = 1.0 / float(times[1] - times[0]) if times is not None else None
+    if fps is None:
+        if from_times is not None:
+            return from_times
+        print(
+            f"warning: {args.sequence} has no timestamps (no time column in truth.csv) and no --fps was "
+            f"given: assuming {_DEFAULT_FPS:g} fps for the motion prior and the output",
+            file=sys.stderr,
+        )
+        return _DEFAULT_FPS
+    try:
+        fps = float(fps)
+    except (TypeError, ValueError):
+        raise CliError(f"fps must be a number of frames per second, got {fps!r}") from None
+    if not (0 < fps < float("inf")):
+        raise CliError(f"--fps must be positive and finite, got {fps:g}")
+    if from_times is not None and abs(fps - from_times) > 1e-3 * from_times:
+        print(
+            f"warning: --fps {fps:g} overrides the {from_times:g} fps of {args.sequence}'s timestamps for "
+            "the motion prior",
+            file=sys.stderr,
+        )
+    return fps
+
+
 def _check_config_keys(config: dict, path: str) -> None:
     import inspect
 
@@ -257,8 +299,7 @@ def _track(args) -> int:
     n = int(kwargs.get("n_particles", 500))
     if not str(kwargs.get("device") or "cpu").startswith("cuda"):
         check_memory(n * _BYTES_PER_PARTICLE_CAPSULE * max(len(skel.bones), 1), f"--particles {n}")
-    if seq.times is not None and len(seq.times) > 1 and "fps" not in kwargs:
-        kwargs["fps"] = 1.0 / float(seq.times[1] - seq.times[0])
+    kwargs["fps"] = _frame_rate(args, seq, kwargs.get("fps"))
     tracker = Tracker.from_config(kwargs, skeleton=skel, cameras=seq.cameras)
     init = args.init
     if init not in (None, "auto", "truth"):

@@ -1,0 +1,54 @@
+"""Command-line conventions of issue 15: what a command assumes is said, inputs fail in one clear line,
+outputs get the usual permissions."""
+
+import pytest
+
+from torchpf import Skeleton
+from torchpf.__main__ import main
+from torchpf.assets import path
+from torchpf.camera import camera_ring
+from torchpf.io import read_mocap_csv, write_mocap_csv
+from torchpf.sequence import load_truth_csv, write_sequence
+from torchpf.synth import synthesize
+from training.synthetic import generate
+
+URDF = str(path("human.urdf"))
+
+
+@pytest.fixture(scope="module")
+def untimed_seq(tmp_path_factory):
+    """A sequence directory whose truth.csv has no time column (as a hand-made one often has)."""
+    skel = Skeleton.from_urdf(URDF)
+    angles = generate("walk", 4, 15.0, seed=3).angles
+    cams = camera_ring(2, radius=4.0, width=64, height_px=48, target=(0.0, 0.0, 1.0))
+    root = tmp_path_factory.mktemp("untimed") / "seq"
+    write_sequence(root, synthesize(skel, angles, cams, fps=15.0))
+    truth, names, _ = load_truth_csv(root / "truth.csv")
+    write_mocap_csv(root / "truth.csv", names, truth)  # no times
+    return root
+
+
+def _track(seq, out, *extra):
+    argv = ["track", str(seq), "--skeleton", URDF, "--out", str(out), "--filter", "sir", "--particles", "40"]
+    return main([*argv, "--no-progress", "--threads", "1", *extra])
+
+
+def test_track_says_which_frame_rate_it_assumed(untimed_seq, tmp_path, capsys, recwarn):
+    assert _track(untimed_seq, tmp_path / "a.csv") == 0
+    err = capsys.readouterr().err
+    assert "no timestamps" in err and "assuming 30 fps" in err and "--fps" in err
+    # the prior got the same rate: no fallback to Table 5's 5 Hz
+    assert not [w for w in recwarn if "fps" in str(w.message)], [str(w.message) for w in recwarn]
+    _, times, _ = read_mocap_csv(tmp_path / "a.csv")
+    assert times[1] == pytest.approx(1 / 30)
+
+    assert _track(untimed_seq, tmp_path / "b.csv", "--fps", "15") == 0
+    assert "fps" not in capsys.readouterr().err
+    _, times, _ = read_mocap_csv(tmp_path / "b.csv")
+    assert times[1] == pytest.approx(1 / 15)
+
+
+def test_track_refuses_a_bad_fps(untimed_seq, tmp_path, capsys):
+    assert _track(untimed_seq, tmp_path / "a.csv", "--fps", "0") == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--fps must be positive" in err
