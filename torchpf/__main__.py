@@ -8,6 +8,7 @@
     python -m torchpf masks VIDEO_OR_FOLDER... --cameras cameras.yaml --out SEQ_DIR \\
         [--background-frames N | --clean-plate IMG...]
     python -m torchpf render TRACK.csv --skeleton S.urdf --sequence SEQ_DIR --out overlay.mp4
+    python -m torchpf cameras merge CAM1.yml CAM2.yml ... --out cameras.yaml
 
 ``track`` reads a sequence directory (DESIGN.md: cameras.yaml, masks/, optional points/, truth.csv), builds a
 :class:`~torchpf.tracker.Tracker` and writes the estimated motion as mocap CSV. ``evaluate`` compares one or
@@ -159,6 +160,18 @@ def _parser() -> argparse.ArgumentParser:
     re_.add_argument("--min-height", type=int, default=240, help="enlarge smaller tiles to this height (px)")
     re_.add_argument("--no-progress", action="store_true")
     add_runtime_options(re_)
+
+    cm = sub.add_parser("cameras", help="camera files: merge per-camera OpenCV calibrations (cameras merge)")
+    cm_sub = cm.add_subparsers(dest="cameras_command", required=True)
+    mg = cm_sub.add_parser(
+        "merge", help="per-camera OpenCV calibration files (or cameras.yaml files) -> one cameras.yaml"
+    )
+    mg.add_argument(
+        "files", nargs="+", help="camera files in camera order; a one-camera file names its camera"
+    )
+    mg.add_argument("--out", required=True, help="cameras.yaml to write")
+    mg.add_argument("--depth-camera", help="name of the depth sensor (points/ of a sequence)")
+    add_runtime_options(mg)
     return ap
 
 
@@ -458,8 +471,12 @@ def _size(value: str | None) -> tuple[int, int] | None:
 
 
 def _masks(args) -> int:
+    from torchpf.camera import single_camera_advice
     from torchpf.video import segment_videos
 
+    advice = single_camera_advice(_require_file(args.cameras, "cameras file"))
+    if advice and len(args.sources) > 1:
+        raise CliError(f"--cameras: {len(args.sources)} sources for one camera; {advice}")
     report = segment_videos(
         args.sources,
         _require_file(args.cameras, "cameras file"),
@@ -516,12 +533,25 @@ def _render(args) -> int:
     return 0
 
 
+def _cameras(args) -> int:
+    from torchpf.camera import merge_camera_files, save_cameras
+
+    check_output_file(args.out)
+    rig = merge_camera_files([_require_file(p, "camera file") for p in args.files], args.depth_camera)
+    save_cameras(args.out, rig)
+    sizes = ", ".join(f"{name} {w}x{h}" for name, (w, h) in zip(rig.names, rig.sizes, strict=True))
+    depth = f", depth camera {rig.depth_camera}" if rig.depth_camera else ""
+    print(f"wrote {args.out}: {len(rig)} cameras ({sizes}){depth}")
+    return 0
+
+
 _COMMANDS = {
     "track": _track,
     "evaluate": _evaluate,
     "calibrate": _calibrate,
     "masks": _masks,
     "render": _render,
+    "cameras": _cameras,
 }
 
 

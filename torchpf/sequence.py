@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from torchpf.camera import Camera, CameraRig, load_cameras, save_cameras
+from torchpf.camera import Camera, CameraRig, load_cameras, save_cameras, single_camera_advice
 from torchpf.io import read_mocap_csv, read_npz, write_atomic, write_mocap_csv
 from torchpf.observations import Frame, Keypoints2D, PointCloud, Silhouettes, binary_mask
 
@@ -463,7 +463,11 @@ def read_sequence(path) -> SequenceData:
     if os.path.isdir(mask_dir):
         stray = sorted(n for n in os.listdir(mask_dir) if n not in rig and not n.startswith("."))
         if stray:
-            raise SequenceError(f"{os.path.join(mask_dir, stray[0])}: no camera {stray[0]!r} in {cam_file}")
+            advice = single_camera_advice(cam_file)
+            raise SequenceError(
+                f"{os.path.join(mask_dir, stray[0])}: no camera {stray[0]!r} in {cam_file}"
+                + (f"; {advice}" if advice else "")
+            )
     names = [n for n in rig if os.path.isdir(os.path.join(mask_dir, n))]
     if not names:
         names = [n for n in rig if n != rig.depth_camera]

@@ -1,14 +1,18 @@
 """Command-line conventions of issue 15: what a command assumes is said, inputs fail in one clear line,
 outputs get the usual permissions."""
 
+import shutil
+
+import numpy as np
 import pytest
+import torch
 
 from torchpf import Skeleton
 from torchpf.__main__ import main
 from torchpf.assets import path
-from torchpf.camera import camera_ring
+from torchpf.camera import camera_ring, load_cameras
 from torchpf.io import read_mocap_csv, write_mocap_csv
-from torchpf.sequence import load_truth_csv, write_sequence
+from torchpf.sequence import load_truth_csv, read_sequence, write_sequence
 from torchpf.synth import synthesize
 from training.synthetic import generate
 
@@ -52,3 +56,50 @@ def test_track_refuses_a_bad_fps(untimed_seq, tmp_path, capsys):
     assert _track(untimed_seq, tmp_path / "a.csv", "--fps", "0") == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "--fps must be positive" in err
+
+
+def _opencv_files(rig, folder):
+    """One cv2.FileStorage calibration file per camera, as OpenCV's calibration samples write them."""
+    cv2 = pytest.importorskip("cv2")
+    paths = []
+    for name, cam in rig.items():
+        paths.append(str(folder / f"{name}.yml"))
+        fs = cv2.FileStorage(paths[-1], cv2.FILE_STORAGE_WRITE)
+        fs.write("camera_matrix", cam.K.numpy().astype(np.float64))
+        fs.write("distortion_coefficients", np.zeros((1, 5)))
+        fs.write("image_width", int(cam.width))
+        fs.write("image_height", int(cam.height))
+        fs.write("R", cam.R.numpy().astype(np.float64))
+        fs.write("T", cam.t.numpy().astype(np.float64).reshape(3, 1))
+        fs.release()
+    return paths
+
+
+def _one_line(capsys, *words):
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "error: " in err and all(w in err for w in words), err
+
+
+def test_cameras_merge_and_single_camera_files(untimed_seq, tmp_path, capsys):
+    seq = tmp_path / "seq"
+    shutil.copytree(untimed_seq, seq)
+    rig = load_cameras(seq / "cameras.yaml")
+    files = _opencv_files(rig, tmp_path)
+
+    shutil.copy(files[0], seq / "cameras.yaml")  # one camera's calibration where the rig should be
+    assert _track(seq, tmp_path / "t.csv") == 2
+    _one_line(capsys, "one-camera OpenCV calibration file", "cameras merge")
+    argv = ["masks", "a.mp4", "b.mp4", "--cameras", files[0], "--out", str(tmp_path / "m")]
+    assert main(argv) == 2
+    _one_line(capsys, "2 sources for one camera", "cameras merge")
+
+    assert main(["cameras", "merge", *files, "--out", str(seq / "cameras.yaml")]) == 0
+    assert "2 cameras (cam0 64x48, cam1 64x48)" in capsys.readouterr().out
+    merged = load_cameras(seq / "cameras.yaml")
+    assert merged.names == rig.names
+    for key in ("K", "R", "t"):
+        torch.testing.assert_close(getattr(merged, key), getattr(rig, key))
+    assert len(read_sequence(seq)) == 4
+
+    assert main(["cameras", "merge", files[0], files[0], "--out", str(tmp_path / "c.yaml")]) == 2
+    _one_line(capsys, "camera 'cam0' is also in")
