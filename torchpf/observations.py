@@ -260,10 +260,13 @@ class Keypoints2D:
         uv: (V, J, 2) pixel coordinates per camera, in the order of the likelihood's ``joints``; NaN marks
             a missing detection. (..., V, J, 2) for a batch of sequences (leading dims as the particles').
         visible: optional (..., V, J) bool; False also marks a missing detection.
+        image_size: (width, height) of the pixel grid ``uv`` is in when it is not the cameras' own (the
+            masks' grid of a sequence directory, :class:`~torchpf.sequence.SequenceData`), else None.
     """
 
     uv: torch.Tensor
     visible: torch.Tensor | None = None
+    image_size: tuple[int, int] | None = None
 
     def __post_init__(self):
         self.uv = _to_tensor(self.uv)

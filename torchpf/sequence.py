@@ -84,6 +84,8 @@ class SequenceData:
         keypoints: (T, V, J, 2) float pixels in the mask grid, NaN = missing, or None;
             ``keypoint_joints`` their names.
         truth: (T, D) angles or None; ``dof_names``; ``times`` (T,) seconds or None.
+        mask_size: (width, height) of the masks, the pixel grid of the keypoints too (masks may be smaller
+            than the camera images: 160x120 masks of 640x480 cameras), or None (the cameras' own).
     """
 
     cameras: CameraRig
@@ -95,6 +97,7 @@ class SequenceData:
     truth: torch.Tensor | None = None
     dof_names: list[str] | None = None
     times: np.ndarray | None = None
+    mask_size: tuple[int, int] | None = None
 
     def __len__(self) -> int:
         for x in (self.masks, self.points, self.truth, self.keypoints):
@@ -160,7 +163,8 @@ class SequenceData:
                 pts = PointCloud(torch.from_numpy(np.asarray(p, dtype=np.float32)))
         kp = None
         if self.keypoints is not None and t < len(self.keypoints):
-            kp = Keypoints2D(torch.from_numpy(np.asarray(self.keypoints[t], dtype=np.float32)))
+            uv = torch.from_numpy(np.asarray(self.keypoints[t], dtype=np.float32))
+            kp = Keypoints2D(uv, image_size=self.mask_size)
         return Frame(silhouettes=sil, points=pts, keypoints=kp)
 
 
@@ -516,4 +520,5 @@ def read_sequence(path) -> SequenceData:
         truth=truth,
         dof_names=dof,
         times=times,
+        mask_size=size,
     )

@@ -1,6 +1,7 @@
 """Command-line conventions of issue 15: what a command assumes is said, inputs fail in one clear line,
 outputs get the usual permissions."""
 
+import math
 import shutil
 
 import numpy as np
@@ -12,6 +13,7 @@ from torchpf.__main__ import main
 from torchpf.assets import path
 from torchpf.camera import camera_ring, load_cameras
 from torchpf.io import read_mocap_csv, write_mocap_csv
+from torchpf.likelihoods import Keypoints2DLikelihood
 from torchpf.sequence import load_truth_csv, read_sequence, write_sequence
 from torchpf.synth import synthesize
 from training.synthetic import generate
@@ -103,3 +105,25 @@ def test_cameras_merge_and_single_camera_files(untimed_seq, tmp_path, capsys):
 
     assert main(["cameras", "merge", files[0], files[0], "--out", str(tmp_path / "c.yaml")]) == 2
     _one_line(capsys, "camera 'cam0' is also in")
+
+
+def test_keypoints_of_a_sequence_are_scored_in_the_mask_grid(tmp_path, capsys):
+    skel = Skeleton.from_urdf(URDF)
+    angles = generate("walk", 4, 15.0, seed=3).angles
+    cams = camera_ring(2, radius=4.0, width=256, height_px=192, target=(0.0, 0.0, 1.0))
+    seq = synthesize(skel, angles, cams, fps=15.0, mask_size=(64, 48))  # detections on the 64x48 masks
+    write_sequence(tmp_path / "seq", seq)
+    for data in (seq, read_sequence(tmp_path / "seq")):
+        assert data.mask_size == (64, 48)
+        lik = Keypoints2DLikelihood(skel, data.cameras, sigma=2.0)
+        truth = data.truth_in(skel.dof_names)[:1].float()
+        # noise-free detections: the truth's residuals vanish, its log-likelihood is the density's peak
+        peak = -len(skel.joint_names) * len(cams) * math.log(2 * math.pi * 4.0)
+        assert float(lik(truth, data.frame(0))) == pytest.approx(peak, abs=1e-2)
+
+    out = tmp_path / "t.csv"  # scored in the cameras' 256x192 grid instead: 62 cm (6.7 here)
+    argv = ["--likelihood", "keypoints", "--init-spread", "0.05", "--seed", "0"]
+    assert _track(tmp_path / "seq", out, *argv) == 0
+    printed = capsys.readouterr().out
+    mpjpe = float(printed.split("MPJPE ")[1].split(" cm")[0])
+    assert mpjpe < 10.0, printed
