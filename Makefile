@@ -4,7 +4,7 @@ VENV := .venv
 VPY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-gpu check-wheel docs lint bench clean
+.PHONY: demo test test-gpu check-wheel docs notebooks lint bench clean
 
 $(VPY):
 	$(PY) -m venv $(VENV)
@@ -43,6 +43,11 @@ docs: $(STAMP)
 	rm -rf docs/_api build/docs
 	$(VPY) -m sphinx -b html -q -W --keep-going docs build/docs
 	@echo "API reference: build/docs/index.html"
+
+# re-execute the notebooks and store them with their outputs (figures visible when browsing); the suite
+# executes them too (tests/test_notebooks.py) and checks that the stored copies have outputs
+notebooks: $(STAMP)
+	TORCHPF_WRITE_NOTEBOOKS=1 $(VPY) -m pytest -q -n 0 -p no:cacheprovider tests/test_notebooks.py
 
 lint: $(STAMP)
 	$(VPY) -m ruff format torchpf priors training tests benchmarks
