@@ -1,7 +1,7 @@
 """Command line: ``python -m torchpf track`` and ``python -m torchpf evaluate``.
 
     python -m torchpf track SEQ_DIR --skeleton S.urdf [--action walk.npz] --filter apf --particles 500 \\
-        --out track.csv [--init auto|truth|POSE.csv]
+        --out track.csv [--init auto|truth|POSE.csv] [--fps F]
     python -m torchpf evaluate track.csv [run2.csv ...] --truth truth.csv --skeleton S.urdf
     python -m torchpf calibrate SEQ_DIR --skeleton S.urdf --out FITTED.urdf [--frames K] \\
         [--init auto|truth|POSE.csv]
@@ -17,7 +17,8 @@ dispersion and failure rate (eq. 3-6), MPJPE and the angle MSE. ``calibrate`` fi
 and scale to the first frames' masks (:func:`torchpf.calibrate.fit_body`), writes the fitted URDF and an
 overlay PNG (masks against the fitted model) next to it. ``masks`` segments synchronised videos (one per
 camera) by background subtraction into a sequence directory (:mod:`torchpf.video`); ``render`` draws a
-track's body model over each camera's video frame or mask, side by side (:mod:`torchpf.render`). Bad input
+track's body model over each camera's video frame or mask, side by side (:mod:`torchpf.render`);
+``cameras merge`` writes one ``cameras.yaml`` from per-camera OpenCV calibration files. Bad input
 ends with a one-line error and exit status 2, Ctrl-C with ``interrupted`` and status 130 (``--debug`` or
 ``TORCHPF_DEBUG=1``: the traceback); ``--threads N`` sets torch's threads (:mod:`torchpf.cli`).
 """

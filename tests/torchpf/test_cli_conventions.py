@@ -22,13 +22,10 @@ URDF = str(path("human.urdf"))
 
 
 @pytest.fixture(scope="module")
-def untimed_seq(tmp_path_factory):
-    """A sequence directory whose truth.csv has no time column (as a hand-made one often has)."""
-    skel = Skeleton.from_urdf(URDF)
-    angles = generate("walk", 4, 15.0, seed=3).angles
-    cams = camera_ring(2, radius=4.0, width=64, height_px=48, target=(0.0, 0.0, 1.0))
+def untimed_seq(seq_dir, tmp_path_factory):
+    """The conftest sequence with a truth.csv without time column (as a hand-made one often has)."""
     root = tmp_path_factory.mktemp("untimed") / "seq"
-    write_sequence(root, synthesize(skel, angles, cams, fps=15.0))
+    shutil.copytree(seq_dir, root)
     truth, names, _ = load_truth_csv(root / "truth.csv")
     write_mocap_csv(root / "truth.csv", names, truth)  # no times
     return root
@@ -101,7 +98,7 @@ def test_cameras_merge_and_single_camera_files(untimed_seq, tmp_path, capsys):
     assert merged.names == rig.names
     for key in ("K", "R", "t"):
         torch.testing.assert_close(getattr(merged, key), getattr(rig, key))
-    assert len(read_sequence(seq)) == 4
+    assert len(read_sequence(seq)) == 3
 
     assert main(["cameras", "merge", files[0], files[0], "--out", str(tmp_path / "c.yaml")]) == 2
     _one_line(capsys, "camera 'cam0' is also in")
