@@ -4,7 +4,7 @@ VENV := .venv
 VPY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-gpu check-wheel lint bench clean
+.PHONY: demo test test-gpu check-wheel docs notebooks lint bench clean
 
 $(VPY):
 	$(PY) -m venv $(VENV)
@@ -37,6 +37,18 @@ check-wheel:
 	$(WHEEL_DIR)/venv/bin/python -m pip install -q "$$(ls $(WHEEL_DIR)/dist/torchpf-*.whl)[opencv]"
 	run=$$(mktemp -d) && cd $$run && $(CURDIR)/$(WHEEL_DIR)/venv/bin/python $(CURDIR)/.ci/check_wheel.py $(CURDIR)/README.md
 
+# API reference from the docstrings (Sphinx autodoc + napoleon, the `docs` extra), warnings as errors: a docstring
+# that does not parse fails. autosummary writes one page per module into docs/_api (regenerated each time).
+docs: $(STAMP)
+	rm -rf docs/_api build/docs
+	$(VPY) -m sphinx -b html -q -W --keep-going docs build/docs
+	@echo "API reference: build/docs/index.html"
+
+# re-execute the notebooks and store them with their outputs (figures visible when browsing); the suite
+# executes them too (tests/test_notebooks.py) and checks that the stored copies have outputs
+notebooks: $(STAMP)
+	TORCHPF_WRITE_NOTEBOOKS=1 $(VPY) -m pytest -q -n 0 -p no:cacheprovider tests/test_notebooks.py
+
 lint: $(STAMP)
 	$(VPY) -m ruff format torchpf priors training tests benchmarks
 	$(VPY) -m ruff check --fix torchpf priors training tests benchmarks
@@ -45,4 +57,4 @@ bench: $(STAMP)
 	$(VPY) -m benchmarks.fk
 
 clean:
-	rm -rf $(VENV) out .pytest_cache
+	rm -rf $(VENV) out .pytest_cache build docs/_api

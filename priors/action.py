@@ -66,10 +66,10 @@ Example::
 
 from __future__ import annotations
 
+import io
 import json
 import math
 import os
-import tempfile
 import warnings
 from collections.abc import Mapping, Sequence
 from typing import Any
@@ -88,7 +88,7 @@ from torchpf.distributions import (
     unflatten_batch,
     wrap_angle,
 )
-from torchpf.io import read_versioned_npz
+from torchpf.io import read_versioned_npz, write_atomic
 
 #: ``metadata["format"]`` of an action-model file.
 FORMAT = "torchpf-action-model"
@@ -676,21 +676,10 @@ def _check_training(training: Mapping[str, Any] | None, D: int, K: int) -> dict[
 
 
 def _savez_atomic(path: str | os.PathLike, **arrays) -> None:
-    """``np.savez`` to a temporary file in the target folder, then ``os.replace`` (crash: old file kept)."""
-    path = os.fspath(path)
-    folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=folder, prefix=".tmp-", suffix=".npz")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            np.savez(f, **arrays)  # a file object: numpy does not append ".npz" to the name
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    """``np.savez`` written atomically by :func:`torchpf.io.write_atomic` (crash: old file kept)."""
+    buffer = io.BytesIO()
+    np.savez(buffer, **arrays)
+    write_atomic(path, buffer.getvalue())
 
 
 # ================================================================================================ dynamics

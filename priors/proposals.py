@@ -290,7 +290,9 @@ class DepthGuided(SilhouetteGuided):
     set of points within ``r_l`` of an observed 3D point (eq. 13). Without silhouettes in the frame only the
     depth test applies; without points only the silhouette test.
 
-    Args (beyond :class:`SilhouetteGuided`):
+    Beyond the arguments of :class:`SilhouetteGuided`:
+
+    Args:
         radii: ``r_l`` per joint ``(J,)`` or scalar (m); default :func:`joint_radii` (capsule radius + 3 cm).
         backend: nearest-neighbour search, ``"cdist"`` (chunked ``torch.cdist``) or ``"kdtree"`` (scipy k-d
             tree built once per frame).

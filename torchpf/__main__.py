@@ -1,13 +1,14 @@
 """Command line: ``python -m torchpf track`` and ``python -m torchpf evaluate``.
 
     python -m torchpf track SEQ_DIR --skeleton S.urdf [--action walk.npz] --filter apf --particles 500 \\
-        --out track.csv [--init auto|truth|POSE.csv]
+        --out track.csv [--init auto|truth|POSE.csv] [--fps F]
     python -m torchpf evaluate track.csv [run2.csv ...] --truth truth.csv --skeleton S.urdf
     python -m torchpf calibrate SEQ_DIR --skeleton S.urdf --out FITTED.urdf [--frames K] \\
         [--init auto|truth|POSE.csv]
     python -m torchpf masks VIDEO_OR_FOLDER... --cameras cameras.yaml --out SEQ_DIR \\
         [--background-frames N | --clean-plate IMG...]
     python -m torchpf render TRACK.csv --skeleton S.urdf --sequence SEQ_DIR --out overlay.mp4
+    python -m torchpf cameras merge CAM1.yml CAM2.yml ... --out cameras.yaml
 
 ``track`` reads a sequence directory (DESIGN.md: cameras.yaml, masks/, optional points/, truth.csv), builds a
 :class:`~torchpf.tracker.Tracker` and writes the estimated motion as mocap CSV. ``evaluate`` compares one or
@@ -16,7 +17,8 @@ dispersion and failure rate (eq. 3-6), MPJPE and the angle MSE. ``calibrate`` fi
 and scale to the first frames' masks (:func:`torchpf.calibrate.fit_body`), writes the fitted URDF and an
 overlay PNG (masks against the fitted model) next to it. ``masks`` segments synchronised videos (one per
 camera) by background subtraction into a sequence directory (:mod:`torchpf.video`); ``render`` draws a
-track's body model over each camera's video frame or mask, side by side (:mod:`torchpf.render`). Bad input
+track's body model over each camera's video frame or mask, side by side (:mod:`torchpf.render`);
+``cameras merge`` writes one ``cameras.yaml`` from per-camera OpenCV calibration files. Bad input
 ends with a one-line error and exit status 2, Ctrl-C with ``interrupted`` and status 130 (``--debug`` or
 ``TORCHPF_DEBUG=1``: the traceback); ``--threads N`` sets torch's threads (:mod:`torchpf.cli`).
 """
@@ -25,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 
 import torch
 
@@ -73,6 +76,12 @@ def _parser() -> argparse.ArgumentParser:
         help="exponent on the log-likelihood: a number, or auto (set on the first frame for ESS/N = 0.2)",
     )
     tr.add_argument("--init-spread", type=float, help="std of the initial particles (rad / m)")
+    tr.add_argument(
+        "--fps",
+        type=float,
+        help="frame rate of the sequence (Hz), for the motion prior and the output's time column "
+        "(default: truth.csv's time column; without one 30, said on stderr)",
+    )
     tr.add_argument(
         "--init",
         help="initial pose: truth (truth.csv frame 0; the default when present), auto (found from the "
@@ -158,6 +167,18 @@ def _parser() -> argparse.ArgumentParser:
     re_.add_argument("--min-height", type=int, default=240, help="enlarge smaller tiles to this height (px)")
     re_.add_argument("--no-progress", action="store_true")
     add_runtime_options(re_)
+
+    cm = sub.add_parser("cameras", help="camera files: merge per-camera OpenCV calibrations (cameras merge)")
+    cm_sub = cm.add_subparsers(dest="cameras_command", required=True)
+    mg = cm_sub.add_parser(
+        "merge", help="per-camera OpenCV calibration files (or cameras.yaml files) -> one cameras.yaml"
+    )
+    mg.add_argument(
+        "files", nargs="+", help="camera files in camera order; a one-camera file names its camera"
+    )
+    mg.add_argument("--out", required=True, help="cameras.yaml to write")
+    mg.add_argument("--depth-camera", help="name of the depth sensor (points/ of a sequence)")
+    add_runtime_options(mg)
     return ap
 
 
@@ -191,6 +212,41 @@ def _require_file(path: str, what: str) -> str:
     if not os.path.isfile(path):
         raise CliError(f"{what} not found: {path}")
     return path
+
+
+#: What ``track`` assumes for a sequence without timestamps and without ``--fps`` (and says so).
+_DEFAULT_FPS = 30.0
+
+
+def _frame_rate(args, seq, configured) -> float:
+    """The tracking frame rate (Hz): ``--fps``, else the config's ``fps``, else the sequence's timestamps,
+    else :data:`_DEFAULT_FPS` with a warning on stderr (the prior's per-frame stds and the output's time
+    column depend on it: never assumed silently)."""
+    fps = args.fps if args.fps is not None else configured
+    times = seq.times if seq.times is not None and len(seq.times) > 1 else None
+    from_times = 1.0 / float(times[1] - times[0]) if times is not None else None
+    if fps is None:
+        if from_times is not None:
+            return from_times
+        print(
+            f"warning: {args.sequence} has no timestamps (no time column in truth.csv) and no --fps was "
+            f"given: assuming {_DEFAULT_FPS:g} fps for the motion prior and the output",
+            file=sys.stderr,
+        )
+        return _DEFAULT_FPS
+    try:
+        fps = float(fps)
+    except (TypeError, ValueError):
+        raise CliError(f"fps must be a number of frames per second, got {fps!r}") from None
+    if not (0 < fps < float("inf")):
+        raise CliError(f"--fps must be positive and finite, got {fps:g}")
+    if from_times is not None and abs(fps - from_times) > 1e-3 * from_times:
+        print(
+            f"warning: --fps {fps:g} overrides the {from_times:g} fps of {args.sequence}'s timestamps for "
+            "the motion prior",
+            file=sys.stderr,
+        )
+    return fps
 
 
 def _check_config_keys(config: dict, path: str) -> None:
@@ -263,8 +319,7 @@ def _track(args) -> int:
     n = int(kwargs.get("n_particles", 500))
     if not str(kwargs.get("device") or "cpu").startswith("cuda"):
         check_memory(n * _BYTES_PER_PARTICLE_CAPSULE * max(len(skel.bones), 1), f"--particles {n}")
-    if seq.times is not None and len(seq.times) > 1 and "fps" not in kwargs:
-        kwargs["fps"] = 1.0 / float(seq.times[1] - seq.times[0])
+    kwargs["fps"] = _frame_rate(args, seq, kwargs.get("fps"))
     tracker = Tracker.from_config(kwargs, skeleton=skel, cameras=seq.cameras)
     init = args.init
     if init not in (None, "auto", "truth"):
@@ -424,8 +479,12 @@ def _size(value: str | None) -> tuple[int, int] | None:
 
 
 def _masks(args) -> int:
+    from torchpf.camera import single_camera_advice
     from torchpf.video import segment_videos
 
+    advice = single_camera_advice(_require_file(args.cameras, "cameras file"))
+    if advice and len(args.sources) > 1:
+        raise CliError(f"--cameras: {len(args.sources)} sources for one camera; {advice}")
     report = segment_videos(
         args.sources,
         _require_file(args.cameras, "cameras file"),
@@ -482,12 +541,25 @@ def _render(args) -> int:
     return 0
 
 
+def _cameras(args) -> int:
+    from torchpf.camera import merge_camera_files, save_cameras
+
+    check_output_file(args.out)
+    rig = merge_camera_files([_require_file(p, "camera file") for p in args.files], args.depth_camera)
+    save_cameras(args.out, rig)
+    sizes = ", ".join(f"{name} {w}x{h}" for name, (w, h) in zip(rig.names, rig.sizes, strict=True))
+    depth = f", depth camera {rig.depth_camera}" if rig.depth_camera else ""
+    print(f"wrote {args.out}: {len(rig)} cameras ({sizes}){depth}")
+    return 0
+
+
 _COMMANDS = {
     "track": _track,
     "evaluate": _evaluate,
     "calibrate": _calibrate,
     "masks": _masks,
     "render": _render,
+    "cameras": _cameras,
 }
 
 

@@ -58,8 +58,10 @@ __all__ = [
     "load_cameras",
     "load_opencv_camera",
     "look_at",
+    "merge_camera_files",
     "project_points",
     "save_cameras",
+    "single_camera_advice",
 ]
 
 
@@ -796,6 +798,70 @@ def load_cameras(path: str | os.PathLike) -> CameraRig:
     if depth is not None and str(depth) not in {c.name for c in cams}:
         raise CameraFileError(f"{path}: key 'depth_camera' names {depth!r}, not one of the cameras")
     return CameraRig(cams, depth_camera=None if depth is None else str(depth))
+
+
+def single_camera_advice(path: str | os.PathLike) -> str | None:
+    """None, or a sentence for an error message when ``path`` is a one-camera OpenCV calibration file
+    (camera keys at the top level, the camera named after the file) where a rig is expected: it names the
+    camera and says how to merge the per-camera files (:func:`merge_camera_files`,
+    ``python -m torchpf cameras merge``). None for a ``cameras.yaml``, a multi-camera or an unreadable file.
+    """
+    path = os.fspath(path)
+    try:
+        with open(path, encoding="utf-8") as f:
+            text = f.read()
+        if not _is_filestorage(text):
+            return None
+        data = _read_fs_yaml(text, path) if text.lstrip().startswith("%YAML") else _read_fs_xml(path)
+        if not isinstance(data, Mapping) or not any(alias in data for alias in _FS_KEYS["K"]):
+            return None
+        name = load_opencv_camera(path).names[0]
+    except (OSError, ValueError):
+        return None
+    return (
+        f"{path} is a one-camera OpenCV calibration file (its camera is named {name!r} after the file): "
+        "merge the per-camera files into one cameras.yaml with 'python -m torchpf cameras merge CAM1.yml "
+        "CAM2.yml ... --out cameras.yaml'"
+    )
+
+
+def merge_camera_files(paths: Sequence[str | os.PathLike], depth_camera: str | None = None) -> CameraRig:
+    """One :class:`CameraRig` from several camera files, in the order given: per-camera OpenCV calibration
+    files (each camera named after its file, ``cam_left.yml`` -> ``cam_left``), multi-camera OpenCV files
+    and ``cameras.yaml`` files alike (:func:`load_cameras`). Save it with :func:`save_cameras`.
+
+    Args:
+        paths: the files; their cameras must have distinct names.
+        depth_camera: the depth sensor's name; default: the one a file names, if any.
+
+    Raises:
+        CameraFileError: two cameras with one name (both files named), two files naming different depth
+            cameras, or a ``depth_camera`` that is none of the cameras.
+    """
+    cams: list[Camera] = []
+    origin: dict[str, str] = {}
+    depths = set()
+    for path in paths:
+        path = os.fspath(path)
+        rig = load_cameras(path)
+        for name, cam in rig.items():
+            if name in origin:
+                raise CameraFileError(
+                    f"{path}: camera {name!r} is also in {origin[name]}; rename a file (a one-camera file "
+                    "names its camera after the file)"
+                )
+            origin[name] = path
+            cams.append(cam)
+        if rig.depth_camera is not None:
+            depths.add(rig.depth_camera)
+    if not cams:
+        raise CameraFileError("no camera file given")
+    if depth_camera is None and len(depths) > 1:
+        raise CameraFileError(f"the files name different depth cameras {sorted(depths)}: choose one")
+    depth = depth_camera if depth_camera is not None else next(iter(depths), None)
+    if depth is not None and depth not in origin:
+        raise CameraFileError(f"depth camera {depth!r} is not one of the cameras {list(origin)}")
+    return CameraRig(cams, depth_camera=depth)
 
 
 def save_cameras(

@@ -195,21 +195,45 @@ def _maybe_clean(folder: str) -> None:
         clean_stale_temporaries(folder)
 
 
+def file_mode(path: str | os.PathLike) -> int:
+    """The permission bits ``open(path, "w")`` leaves: an existing file's own, else ``0o666`` less the
+    umask (``0o644`` with the usual umask 022). :func:`write_atomic` gives its temporary file these, since
+    ``tempfile.mkstemp`` creates ``0o600`` files that other users could not read once renamed."""
+    try:
+        return os.stat(path).st_mode & 0o7777
+    except OSError:
+        pass
+    try:  # Linux: read the umask without changing it (os.umask would, for every thread, for a moment)
+        with open("/proc/self/status", encoding="ascii") as f:
+            for line in f:
+                if line.startswith("Umask:"):
+                    return 0o666 & ~int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return 0o666 & ~mask
+
+
 def write_atomic(path: str | os.PathLike, data: bytes | str) -> None:
     """Write ``data`` (bytes, or text as UTF-8 with LF line ends) to ``path`` atomically.
 
     The data goes to a hidden temporary file in the same folder, then ``os.replace`` puts it in place: a
-    crash mid-write leaves the previous file intact. Parent folders are created. Temporaries left by a
-    killed writer are removed here (:func:`clean_stale_temporaries`).
+    crash mid-write leaves the previous file intact. Parent folders are created; the file gets the
+    permissions a plain write would give it (:func:`file_mode`). Temporaries left by a killed writer are
+    removed here (:func:`clean_stale_temporaries`).
     """
     path = os.fspath(path)
     folder = os.path.dirname(os.path.abspath(path))
     os.makedirs(folder, exist_ok=True)
     _maybe_clean(folder)
+    mode = file_mode(path)
     fd, tmp = tempfile.mkstemp(
         dir=folder, prefix=f"{_TMP_PREFIX}{os.getpid()}-", suffix=os.path.basename(path)
     )
     try:
+        if hasattr(os, "fchmod"):  # POSIX; on Windows mkstemp's file is writable and readable anyway
+            os.fchmod(fd, mode)
         with os.fdopen(fd, "wb") as f:
             f.write(data.encode("utf-8") if isinstance(data, str) else data)
         os.replace(tmp, path)

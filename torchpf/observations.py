@@ -135,7 +135,7 @@ class PointCloud:
 class Silhouettes:
     """Foreground masks of one frame, one per camera.
 
-    Fields:
+    Attributes:
         masks: (V, H, W) foreground in [0, 1] (bool, 0/1, 0/255 and 16-bit masks accepted and rescaled by
             :func:`mask_full_scale`), or (..., V, H, W) for a batch of independent sequences: the leading
             dims then match the particles' (``(B, V, H, W)`` masks go with ``(B, N, D)`` particles), as a
@@ -256,14 +256,17 @@ class Silhouettes:
 class Keypoints2D:
     """Detected 2D body points of one frame (Brubaker et al. §3.1).
 
-    Fields:
+    Attributes:
         uv: (V, J, 2) pixel coordinates per camera, in the order of the likelihood's ``joints``; NaN marks
             a missing detection. (..., V, J, 2) for a batch of sequences (leading dims as the particles').
         visible: optional (..., V, J) bool; False also marks a missing detection.
+        image_size: (width, height) of the pixel grid ``uv`` is in when it is not the cameras' own (the
+            masks' grid of a sequence directory, :class:`~torchpf.sequence.SequenceData`), else None.
     """
 
     uv: torch.Tensor
     visible: torch.Tensor | None = None
+    image_size: tuple[int, int] | None = None
 
     def __post_init__(self):
         self.uv = _to_tensor(self.uv)

@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from torchpf.camera import Camera, CameraRig, load_cameras, save_cameras
+from torchpf.camera import Camera, CameraRig, load_cameras, save_cameras, single_camera_advice
 from torchpf.io import read_mocap_csv, read_npz, write_atomic, write_mocap_csv
 from torchpf.observations import Frame, Keypoints2D, PointCloud, Silhouettes, binary_mask
 
@@ -73,7 +73,7 @@ def load_truth_csv(path) -> tuple[torch.Tensor, list[str], np.ndarray | None]:
 class SequenceData:
     """A multi-camera sequence (synthetic in memory, or read from disk by :func:`read_sequence`).
 
-    Fields:
+    Attributes:
         cameras: :class:`~torchpf.camera.CameraRig` of the mask cameras (``V``), in mask order.
         masks: T rows of V (H, W) masks (uint8 0/255; 0/1, bool and 16-bit are read alike by
             :func:`~torchpf.observations.binary_mask`), None for a missing mask. A list, or the
@@ -84,6 +84,8 @@ class SequenceData:
         keypoints: (T, V, J, 2) float pixels in the mask grid, NaN = missing, or None;
             ``keypoint_joints`` their names.
         truth: (T, D) angles or None; ``dof_names``; ``times`` (T,) seconds or None.
+        mask_size: (width, height) of the masks, the pixel grid of the keypoints too (masks may be smaller
+            than the camera images: 160x120 masks of 640x480 cameras), or None (the cameras' own).
     """
 
     cameras: CameraRig
@@ -95,6 +97,7 @@ class SequenceData:
     truth: torch.Tensor | None = None
     dof_names: list[str] | None = None
     times: np.ndarray | None = None
+    mask_size: tuple[int, int] | None = None
 
     def __len__(self) -> int:
         for x in (self.masks, self.points, self.truth, self.keypoints):
@@ -160,7 +163,8 @@ class SequenceData:
                 pts = PointCloud(torch.from_numpy(np.asarray(p, dtype=np.float32)))
         kp = None
         if self.keypoints is not None and t < len(self.keypoints):
-            kp = Keypoints2D(torch.from_numpy(np.asarray(self.keypoints[t], dtype=np.float32)))
+            uv = torch.from_numpy(np.asarray(self.keypoints[t], dtype=np.float32))
+            kp = Keypoints2D(uv, image_size=self.mask_size)
         return Frame(silhouettes=sil, points=pts, keypoints=kp)
 
 
@@ -463,7 +467,11 @@ def read_sequence(path) -> SequenceData:
     if os.path.isdir(mask_dir):
         stray = sorted(n for n in os.listdir(mask_dir) if n not in rig and not n.startswith("."))
         if stray:
-            raise SequenceError(f"{os.path.join(mask_dir, stray[0])}: no camera {stray[0]!r} in {cam_file}")
+            advice = single_camera_advice(cam_file)
+            raise SequenceError(
+                f"{os.path.join(mask_dir, stray[0])}: no camera {stray[0]!r} in {cam_file}"
+                + (f"; {advice}" if advice else "")
+            )
     names = [n for n in rig if os.path.isdir(os.path.join(mask_dir, n))]
     if not names:
         names = [n for n in rig if n != rig.depth_camera]
@@ -512,4 +520,5 @@ def read_sequence(path) -> SequenceData:
         truth=truth,
         dof_names=dof,
         times=times,
+        mask_size=size,
     )

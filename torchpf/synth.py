@@ -242,4 +242,5 @@ def synthesize(
         truth=angles.clone(),
         dof_names=list(skeleton.dof_names),
         times=np.arange(T) / fps,
+        mask_size=mask_size,
     )

@@ -2,7 +2,7 @@
 
 Commands::
 
-    python -m training convert FILE.bvh --scale S --out-dir DIR    # -> DIR/skeleton.urdf + DIR/FILE.csv
+    python -m training convert FILE.bvh [--scale S] --out-dir DIR  # -> DIR/skeleton.urdf + DIR/FILE.csv
     python -m training fit --action walk --skeleton S.urdf --out walk.npz DATA/*.csv
     python -m training inspect walk.npz --out DIR                  # -> DIR/synchronisation.png, ...; curve
     python -m training fit-dynamics DATA/*.csv --skeleton S.urdf --out dyn.npz [--fps 30]
@@ -42,6 +42,42 @@ def _positive_float(text: str) -> float:
     return value
 
 
+#: Units a BVH file is written in, metres per file unit, tried by ``convert`` when ``--scale`` is missing.
+#: CMU's unit is 1/0.45 inch (its ASF files' ``length 0.45``). A body size decides between them: the ranges
+#: of rest-pose extents that each gives a :data:`_BODY_SIZE_M` body do not overlap.
+_UNITS = {"metres": 1.0, "centimetres": 0.01, "millimetres": 0.001, "inches": 0.0254, "CMU units": 0.056444}
+#: Plausible largest rest-pose extent (height or arm span) of a person, metres.
+_BODY_SIZE_M = (1.0, 2.2)
+
+
+def _infer_scale(bvh, file: str) -> float:
+    """Metres per file unit for a BVH without ``--scale``: the unit of :data:`_UNITS` that makes the rest
+    pose's largest extent a person's size, with a warning naming it; a CliError when none does."""
+    import numpy as np
+
+    from torchpf.cli import CliError
+
+    rest = np.zeros((len(bvh.joints), 3))
+    for i, joint in enumerate(bvh.joints):  # parents come first in a BVH hierarchy
+        if joint.parent >= 0:
+            rest[i] = rest[joint.parent] + np.asarray(joint.offset, dtype=np.float64)
+    size = float(np.ptp(rest, axis=0).max())
+    lo, hi = _BODY_SIZE_M
+    fits = [(name, s) for name, s in _UNITS.items() if lo <= size * s <= hi]
+    if not fits:
+        raise CliError(
+            f"{file}: no --scale, and the rest pose spans {size:.4g} file units, which no usual unit "
+            f"({', '.join(_UNITS)}) makes a {lo:g}-{hi:g} m person: pass --scale (metres per file unit)"
+        )
+    name, scale = fits[0]
+    print(
+        f"warning: no --scale: {file}'s rest pose spans {size:.4g} file units, read as {name} (--scale "
+        f"{scale:g}, a {size * scale:.2f} m body); pass --scale to set the units",
+        file=sys.stderr,
+    )
+    return scale
+
+
 def _convert(args: argparse.Namespace) -> int:
     # Imported here so that `--help` answers without loading torch.
     from torchpf.io import write_text_atomic
@@ -49,6 +85,8 @@ def _convert(args: argparse.Namespace) -> int:
 
     check_output_dir(args.out_dir, "--out-dir")
     bvh = read_bvh(args.file)
+    if args.scale is None:
+        args.scale = _infer_scale(bvh, args.file)
     urdf = bvh_to_urdf(bvh, args.scale)
     skel = skeleton_from_urdf(bvh, urdf)
     motion = bvh_motion(bvh, args.scale, dof_names=skel.dof_names)
@@ -218,8 +256,9 @@ def build_parser() -> argparse.ArgumentParser:
     convert.add_argument(
         "--scale",
         type=_positive_float,
-        default=1.0,
-        help="metres per file unit (CMU clips: 0.056444; default 1)",
+        default=None,
+        help="metres per file unit (CMU clips: 0.056444); default: inferred from the body's size "
+        "(metres, cm, mm, inches or CMU units), with a warning",
     )
     convert.add_argument("--out-dir", required=True, metavar="DIR", help="output folder (created if missing)")
     add_runtime_options(convert)

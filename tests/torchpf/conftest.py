@@ -1,5 +1,6 @@
-"""Fixtures of the synthetic scenes shared by the synthesis, sequence and likelihood tests: three cameras on a
-ring and a depth camera around a subject standing at the origin, 160x120 pixels."""
+"""Fixtures of the synthetic scenes shared by the synthesis, sequence, likelihood and command-line tests:
+three cameras on a ring and a depth camera around a subject standing at the origin, 160x120 pixels; a small
+sequence directory."""
 
 import pytest
 
@@ -16,3 +17,20 @@ def rig():
 def depth_cam():
     """A 160x120 depth camera in front of the subject, named ``depth``."""
     return look_at((0.6, -3.0, 1.4), (0, 0, 0.8), width=160, height=120, name="depth")
+
+
+@pytest.fixture(scope="module")
+def seq_dir(tmp_path_factory):
+    """A 3-frame sequence directory (wave, two 64x48 cameras, truth.csv at 15 fps) of the human.urdf body."""
+    from torchpf import Skeleton
+    from torchpf.assets import path
+    from torchpf.sequence import write_sequence
+    from torchpf.synth import synthesize
+    from training.synthetic import generate
+
+    skel = Skeleton.from_urdf(path("human.urdf"))
+    angles = generate("wave", 3, 15.0, seed=2).angles
+    cams = camera_ring(2, radius=4.0, width=64, height_px=48, target=(0.0, 0.0, 1.0))
+    root = tmp_path_factory.mktemp("cli") / "seq"
+    write_sequence(root, synthesize(skel, angles, cams, fps=15.0))
+    return root

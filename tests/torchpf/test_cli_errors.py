@@ -11,23 +11,9 @@ import torch
 from torchpf import Skeleton, cli
 from torchpf.__main__ import main
 from torchpf.assets import path
-from torchpf.camera import camera_ring
-from torchpf.sequence import write_sequence
-from torchpf.synth import synthesize
 from training.__main__ import main as training_main
-from training.synthetic import generate
 
 URDF = str(path("human.urdf"))
-
-
-@pytest.fixture(scope="module")
-def seq_dir(tmp_path_factory):
-    skel = Skeleton.from_urdf(URDF)
-    angles = generate("wave", 3, 15.0, seed=2).angles
-    cams = camera_ring(2, radius=4.0, width=64, height_px=48, target=(0.0, 0.0, 1.0))
-    root = tmp_path_factory.mktemp("cli_errors") / "seq"
-    write_sequence(root, synthesize(skel, angles, cams, fps=15.0))
-    return root
 
 
 def _one_line_error(capsys, *words):

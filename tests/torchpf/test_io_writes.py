@@ -73,3 +73,28 @@ def test_csv_writer_keeps_finished_rows_on_error(tmp_path):
     assert names == ["a", "b"] and np.array_equal(got, values) and np.allclose(times, [0, 0.1, 0.2])
     with MocapCsvWriter(tmp_path / "n.csv", ["a"]) as out, pytest.raises(ValueError, match=r"values\[1, 0\]"):
         out.write([[1.0], [np.nan]])
+
+
+@pytest.mark.skipif(not hasattr(os, "fchmod"), reason="POSIX permission bits")
+def test_written_files_get_the_usual_permissions(tmp_path):
+    from tests.priors.test_action import tiny_model
+    from torchpf.camera import camera_ring, save_cameras
+
+    old = os.umask(0o022)
+    try:
+        write_atomic(tmp_path / "a.bin", b"x")  # mkstemp alone would leave 0600
+        write_mocap_csv(tmp_path / "m.csv", ["a"], np.zeros((2, 1)))
+        save_cameras(tmp_path / "cameras.yaml", camera_ring(2))
+        tiny_model().save(tmp_path / "walk.npz")
+        with MocapCsvWriter(tmp_path / "w.csv", ["a"]) as out:
+            out.write(np.zeros(1))
+        for name in ("a.bin", "m.csv", "cameras.yaml", "walk.npz", "w.csv"):
+            assert (tmp_path / name).stat().st_mode & 0o777 == 0o644, name
+        os.umask(0o077)  # a private umask is honoured
+        write_atomic(tmp_path / "b.bin", b"x")
+        assert (tmp_path / "b.bin").stat().st_mode & 0o777 == 0o600
+    finally:
+        os.umask(old)
+    (tmp_path / "a.bin").chmod(0o640)  # rewriting keeps a file's own permissions, as open(..., "w") does
+    write_atomic(tmp_path / "a.bin", b"y")
+    assert (tmp_path / "a.bin").stat().st_mode & 0o777 == 0o640

@@ -115,3 +115,24 @@ def test_module_entry_point(tmp_path):
         cwd=REPO,
     )
     assert run.returncode == 2 and run.stderr.count("\n") == 1 and "none.bvh" in run.stderr
+
+
+def test_convert_without_scale_infers_centimetres_or_refuses(tmp_path, capsys):
+    bvh = tmp_path / "walk.bvh"
+    bvh.write_text(SMALL.replace("OFFSET 0 10 0", "OFFSET 0 100 0").replace("OFFSET 0 5 0", "OFFSET 0 50 0"))
+    assert main(["convert", str(bvh), "--out-dir", str(tmp_path / "out")]) == 0
+    err = capsys.readouterr().err
+    assert "no --scale" in err and "centimetres (--scale 0.01, a 1.50 m body)" in err
+    _check_outputs(bvh, tmp_path / "out", 0.01)
+
+    bvh.write_text(SMALL)  # 15 units: no usual unit makes it a person
+    assert main(["convert", str(bvh), "--out-dir", str(tmp_path / "out2")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "pass --scale (metres per file unit)" in err
+
+
+@pytest.mark.skipif(not CMU_CLIP.exists(), reason=f"CMU clip not found: {CMU_CLIP}")
+def test_convert_cmu_clip_without_scale_reads_cmu_units(tmp_path, capsys):
+    assert main(["convert", str(CMU_CLIP), "--out-dir", str(tmp_path)]) == 0
+    assert f"read as CMU units (--scale {CMU_SCALE:g}" in capsys.readouterr().err
+    _check_outputs(CMU_CLIP, tmp_path, CMU_SCALE)

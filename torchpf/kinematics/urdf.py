@@ -310,17 +310,72 @@ def is_identity(static: torch.Tensor) -> bool:
 
 
 def read_urdf_text(path_or_xml: str | os.PathLike) -> tuple[str, str]:
-    """(xml text, where it came from) for a URDF path or an XML string (one that starts with ``<``)."""
+    """(xml text, where it came from) for a URDF path or an XML string (one that starts with ``<``); a
+    ``floating`` joint comes back as six single-DOF joints (:func:`expand_floating_joints`)."""
     if isinstance(path_or_xml, str) and path_or_xml.lstrip().startswith("<"):
-        return path_or_xml, "<urdf string>"
+        return expand_floating_joints(path_or_xml, "<urdf string>"), "<urdf string>"
     path = os.fspath(path_or_xml)
     if not os.path.isfile(path):
         raise FileNotFoundError(f"URDF file not found: {path}")
     try:
         with open(path, encoding="utf-8") as f:
-            return f.read(), path
+            text = f.read()
     except UnicodeDecodeError as e:
         raise ValueError(f"{path}: not a UTF-8 URDF file ({e.reason} at byte {e.start})") from None
+    return expand_floating_joints(text, path), path
+
+
+def expand_floating_joints(xml: str, source: str) -> str:
+    """``xml`` with each ``floating`` joint written as 3 prismatic + 3 revolute joints (x, y, z, then
+    rotations about z, y, x: :func:`floating_root_dofs`, DOFs ``{joint}_tx`` ... ``{joint}_rx``) linked by
+    massless links ``{child}__{dof}``, the form :func:`build_urdf` writes: pytorch-kinematics has single-DOF
+    joints only. The first joint keeps the floating joint's ``<origin>``. ``xml`` unchanged without one; a
+    ``planar`` joint is refused with the same advice.
+    """
+    if "floating" not in xml and "planar" not in xml:
+        return xml
+    root = parse_urdf_xml(xml, source)
+    taken = {el.get("name") for el in root if el.tag in ("link", "joint")}
+    changed = False
+    for index, joint in reversed(list(enumerate(root))):
+        jtype = joint.get("type") if joint.tag == "joint" else None
+        if jtype == "planar":
+            raise ValueError(
+                f"{source}: joint {joint.get('name')!r}: type 'planar' is not supported; write it as "
+                "prismatic and revolute joints linked by links without geometry"
+            )
+        if jtype != "floating":
+            continue
+        name, parent, child = joint.get("name"), joint.find("parent"), joint.find("child")
+        if name is None or parent is None or child is None:
+            continue  # validate_urdf names what is missing
+        dofs = floating_root_dofs(name)
+        links = [f"{child.get('link')}__{d.name}" for d in dofs[:-1]]
+        clash = sorted(taken & ({d.name for d in dofs} | set(links)))
+        if clash:
+            raise ValueError(
+                f"{source}: joint {name!r}: cannot expand the floating joint into 3 prismatic + 3 revolute "
+                f"joints, the names {clash} are taken; write the six joints yourself"
+            )
+        root.remove(joint)
+        above = parent.get("link")
+        for k, dof in enumerate(dofs):
+            below = child.get("link") if k == len(dofs) - 1 else links[k]
+            el = ET.Element("joint", name=dof.name, type=dof.type)
+            ET.SubElement(el, "parent", link=above)
+            ET.SubElement(el, "child", link=below)
+            origin = joint.find("origin") if k == 0 else None
+            el.append(origin if origin is not None else ET.Element("origin", xyz="0 0 0", rpy="0 0 0"))
+            ET.SubElement(el, "axis", xyz=_fmt(dof.axis))
+            ET.SubElement(
+                el, "limit", lower=f"{dof.lower:.9g}", upper=f"{dof.upper:.9g}", effort="100", velocity="100"
+            )
+            root.insert(index + 2 * k, el)
+            if k < len(dofs) - 1:
+                root.insert(index + 2 * k + 1, ET.Element("link", name=below))
+            above = below
+        changed = True
+    return ET.tostring(root, encoding="unicode") if changed else xml
 
 
 def parse_urdf_xml(xml: str, source: str) -> ET.Element:
@@ -331,7 +386,7 @@ def parse_urdf_xml(xml: str, source: str) -> ET.Element:
         raise ValueError(f"{source}: invalid URDF XML ({e})") from None
 
 
-#: Largest |coordinate| (m) of a URDF origin, limit or geometry size: beyond it the float32 parse of
+#: Largest ``|coordinate|`` (m) of a URDF origin, limit or geometry size: beyond it the float32 parse of
 #: pytorch-kinematics and the FK products overflow or lose every digit of a human-sized body.
 MAX_COORDINATE = 1e6
 

@@ -38,7 +38,7 @@ lists the registered ones."""
 class Body:
     """The body model in a batch of poses, computed once and shared by the likelihood terms.
 
-    Fields:
+    Attributes:
         theta: (B, D) poses, the leading dims ``batch`` of the caller's (..., D) flattened into B.
         batch: the leading dims (``...``) to restore on the way out.
         joints: (B, J, 3) world joint positions (m), ``skeleton.fk(theta)``.

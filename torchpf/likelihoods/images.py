@@ -383,7 +383,7 @@ class OverlapLikelihood(SilhouetteLikelihood):
         self.eps = float(eps)
 
     def ratios(self, theta: torch.Tensor, obs) -> torch.Tensor:
-        """(..., N, V) overlap ratios |model ∩ mask| / |model ∪ mask| in [0, 1]."""
+        """(..., N, V) overlap ratios ``|model ∩ mask| / |model ∪ mask|`` in [0, 1]."""
         body = self.body(theta)
         return self._ratios(body, self.select(obs)).reshape(*body.batch, -1)
 

@@ -33,7 +33,8 @@ class Keypoints2DLikelihood(ImageLikelihood):
         joints: joint names (or indices) the detections refer to, in the obs ``J`` order; default all
             ``skeleton.joint_names``.
         sigma: pixels, in the observation's pixel frame (``image_size``).
-        image_size: (width, height) of the detections' pixel frame per camera if not the cameras' own.
+        image_size: (width, height) of the detections' pixel frame per camera if not the cameras' own;
+            default: the observation's ``image_size`` (a sequence directory's mask grid), else the cameras'.
         learnable: ``True`` (or ``["sigma"]``) makes ``sigma`` an ``nn.Parameter`` (see
             :class:`~torchpf.likelihoods.Likelihood`); the density is normalised, so the log-evidence has
             its maximum at the detections' noise level.
@@ -72,7 +73,8 @@ class Keypoints2DLikelihood(ImageLikelihood):
                 f"obs has {obs.uv.shape[-2]} points per camera, expected {len(self.joint_index)}"
             )
         X = body.joints[:, self.joint_index]  # (B, J, 3)
-        rig = self.cameras if self.image_size is None else self.cameras.resized(*self.image_size)
+        size = self.image_size or obs.image_size
+        rig = self.cameras if size is None else self.cameras.resized(*size)
         uv = rig.project(X)  # (B, J, V, 2)
         observed = body.rows(obs.uv.to(uv), 3).transpose(-3, -2)  # (J, V, 2) or (B, J, V, 2)
         visible = body.rows(obs.visible.to(uv.device), 2).transpose(-2, -1)

@@ -139,3 +139,51 @@ def test_non_utf8_urdf_names_the_file(tmp_path):
     bad.write_bytes(b"<robot name='\xe9'><link name='a'/></robot>")
     with pytest.raises(ValueError, match="latin.urdf: not a UTF-8"):
         Skeleton.from_urdf(bad)
+
+
+FLOATING = """<robot name="f">
+  <link name="world"/>
+  <link name="pelvis"><collision><geometry><sphere radius="0.1"/></geometry></collision></link>
+  <link name="thigh"/>
+  <joint name="root" type="floating">
+    <parent link="world"/><child link="pelvis"/><origin xyz="0.2 0 1" rpy="0 0 0.3"/>
+  </joint>
+  <joint name="hip" type="revolute">
+    <parent link="pelvis"/><child link="thigh"/><origin xyz="0 0 -0.4"/><axis xyz="1 0 0"/>
+    <limit lower="-1" upper="1" effort="1" velocity="1"/>
+  </joint>
+</robot>
+"""
+
+
+def test_floating_joint_becomes_three_prismatic_and_three_revolute_joints(tmp_path):
+    file = tmp_path / "floating.urdf"
+    file.write_text(FLOATING)
+    skel = Skeleton.from_urdf(file)
+    assert skel.dof_names == ["root_tx", "root_ty", "root_tz", "root_rz", "root_ry", "root_rx", "hip"]
+    assert skel.joint_names == ["pelvis", "thigh"]
+    assert skel.dof_revolute.tolist() == [False] * 3 + [True] * 4
+    # the same body written by build_urdf (whose floating root has no rotated origin: turn it by 0.3 rad)
+    ref = Skeleton.from_urdf(
+        build_urdf(
+            "ref",
+            [
+                BodyJoint("pelvis", None, (0.2, 0.0, 1.0), floating_root_dofs("root")),
+                BodyJoint("thigh", "pelvis", (0.0, 0.0, -0.4), [Dof("hip", "revolute", (1, 0, 0), -1, 1)]),
+            ],
+        )
+    )
+    theta = torch.rand(5, 7, dtype=torch.float64, generator=torch.Generator().manual_seed(0)) - 0.5
+    c, s = math.cos(0.3), math.sin(0.3)
+    turn = torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    origin = torch.tensor([0.2, 0.0, 1.0], dtype=torch.float64)
+    expected = (ref.fk(theta) - origin) @ turn.T + origin  # the origin's rpy turns everything below it
+    torch.testing.assert_close(skel.fk(theta), expected)
+    saved = tmp_path / "saved.urdf"  # written back in the expanded form, which reads the same
+    skel.save_urdf(saved)
+    torch.testing.assert_close(Skeleton.from_urdf(saved).fk(theta), expected)
+
+
+def test_planar_joint_is_refused_with_advice():
+    with pytest.raises(ValueError, match="'planar' is not supported; write it as prismatic and revolute"):
+        Skeleton.from_urdf(FLOATING.replace('type="floating"', 'type="planar"'))
