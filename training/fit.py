@@ -51,9 +51,10 @@ in :mod:`training.align`):
    residuals per dimension.
 7. *Constant-velocity statistics* (Rius eq. 3; :func:`training.dynamics.cv_statistics`, shared with
    ``fit-dynamics``): with ``V_t = α V_{t-1} + (1 - α)(φ_t - φ_{t-1})`` and the prediction
-   ``φ̂_{t+1} = φ_t + V_t``, α minimises the squared prediction error over the posture DOFs of all
-   performances (one α: the model file stores a scalar), and σ_φ is the per-DOF robust standard deviation
-   (``1.4826 · median |e|``, insensitive to Euler flips) of the prediction errors ``e`` at that α.
+   ``φ̂_{t+1} = φ_t + V_t``, each DOF's α minimises its squared prediction error over all performances
+   (per DOF, Rius §3.1; stored per DOF in the model file since its version 3), and σ_φ is the per-DOF robust
+   standard deviation (``1.4826 · median |e|``, insensitive to Euler flips) of the prediction errors ``e`` at
+   those α.
 
 Shapes: ``T`` frames, ``D_full`` DOFs of the pose vector, ``P`` posture DOFs, ``D`` aSpace dimensions,
 ``K`` mean postures, ``R`` performances.
@@ -74,7 +75,7 @@ from tqdm.auto import tqdm
 
 from priors.action import ActionModel, guess_revolute
 from training.align import PERIODIC_THRESHOLD, dba_update, dtw_align, estimate_period, initial_mean, resample
-from training.dynamics import cv_statistics, fit_alpha
+from training.dynamics import cv_statistics
 from training.mocap import Motion
 
 #: Default ``exclude`` patterns (case-insensitive regular expressions searched in DOF names): the hand,
@@ -161,7 +162,7 @@ class ActionModelFitter:
         max_iter: most synchronisation (DBA) iterations.
         sigma_smoothing: std (in postures) of the window that pools residuals for σ_k; 0: none.
         n_sigma: acceptance half-width in σ (Rius eq. 6: 2).
-        alpha: fix α instead of fitting it.
+        alpha: fix α (one value for every DOF) instead of fitting it per DOF.
         validate: also fit ``R`` leave-one-performance-out models and measure how often each accepts the
             performance left out (``validation_acceptance_``): the check that ``D`` generalises. With few
             performers the trailing components only fit the training performers and this rate collapses
@@ -175,9 +176,9 @@ class ActionModelFitter:
     ``periods_`` (per performance, frames or None), ``cyclic_``, ``n_postures_``,
     ``mean_performance_ (K, D)``, ``paths_`` (R arrays ``(T_r,)``: matched mean posture per frame),
     ``costs_`` (mean DTW cost per iteration), ``n_iter_``, ``converged_``, ``std_ (K, D)``, ``delta_ (D,)``,
-    ``alpha_``, ``sigma_phi_ (D_full,)``, ``train_acceptance_`` (mean eq. 6 acceptance probability of the
-    training frames), ``validation_acceptance_`` (``(R,)`` the same for each left-out performance under the
-    model fitted without it, with ``validate=True``; else None), ``validation_curve_`` (a
+    ``alpha_ (D_full,)``, ``sigma_phi_ (D_full,)``, ``train_acceptance_`` (mean eq. 6 acceptance probability
+    of the training frames), ``validation_acceptance_`` (``(R,)`` the same for each left-out performance under
+    the model fitted without it, with ``validate=True``; else None), ``validation_curve_`` (a
     :class:`ValidationCurve` with ``n_components="auto"``, else None).
 
     Example::
@@ -378,9 +379,9 @@ class ActionModelFitter:
 
         # 7. constant-velocity statistics
         deltas = [np.diff(a, axis=0) for a in full]
-        # one α over the posture DOFs (the model file's scalar α), σ_φ per DOF at it: training.dynamics' rule
-        alpha = fit_alpha([d[:, pidx] for d in deltas]) if self.alpha is None else float(self.alpha)
-        sigma_phi = cv_statistics(deltas, alpha)[1]
+        # α and σ_φ per DOF (Rius §3.1): training.dynamics' rule, shared with fit-dynamics
+        alpha, sigma_phi = cv_statistics(deltas, self.alpha, per_dof=True)
+        alpha = np.full(len(names), float(alpha)) if np.ndim(alpha) == 0 else np.asarray(alpha)
 
         self.dof_names_ = names
         self.posture_dofs_ = posture
