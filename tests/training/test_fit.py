@@ -254,3 +254,46 @@ def test_truncated_models_are_the_leading_dimensions():
     torch.testing.assert_close(small.project(x), model.project(x)[..., :3])
     with pytest.raises(ValueError, match="n_components"):
         model.truncated(7)
+
+
+# scikit-learn's estimator checks that apply to a fitter of performances (not of numeric X): the parameter API
+SKLEARN_API_CHECKS = (
+    "check_estimator_cloneable",
+    "check_estimator_repr",
+    "check_no_attributes_set_in_init",
+    "check_parameters_default_constructible",
+    "check_get_params_invariance",
+    "check_set_params",
+    "check_do_not_raise_errors_in_init_or_set_params",
+    "check_estimators_unfitted",
+)
+
+
+@pytest.mark.parametrize("check", SKLEARN_API_CHECKS)
+def test_the_fitter_passes_sklearn_estimator_checks(check):
+    from sklearn.utils import estimator_checks
+
+    getattr(estimator_checks, check)("ActionModelFitter", ActionModelFitter())
+
+
+def test_the_fitter_follows_the_sklearn_estimator_contract():
+    from sklearn.base import clone
+    from sklearn.exceptions import NotFittedError
+
+    walks = [generate("walk", 60, 15.0, seed=k) for k in range(2)]
+    fitter = ActionModelFitter(n_components=3, action="walk", exclude=["hand"], negatives=walks[:1])
+    params = fitter.get_params(deep=True)
+    assert params["n_components"] == 3 and params["exclude"] == ["hand"] and params["negatives"] is not None
+    assert set(params) == set(ActionModelFitter().get_params())  # every __init__ parameter, nothing else
+    assert fitter.set_params(n_components=2, n_sigma=3.0) is fitter and fitter.n_components == 2
+    with pytest.raises(ValueError, match="Invalid parameter 'bogus'"):
+        fitter.set_params(bogus=1)
+    with pytest.raises(NotFittedError, match="call fit"):
+        fitter.align(walks[0])
+    fitter.fit(walks, None)  # sklearn's fit(X, y=None)
+    twin = clone(fitter)
+    assert not hasattr(twin, "model_") and twin.get_params()["n_components"] == 2
+    assert twin.fit(walks).model_.n_components == 2 and twin.model_.n_sigma == 3.0
+    torch.testing.assert_close(twin.model_.mean_performance, fitter.model_.mean_performance)
+    config = fitter.model_.training_data["info"]["config"]  # the JSON config in the file: no Motions in it
+    assert "negatives" not in config and config["exclude"] == ["hand"] and config["n_components"] == 2
