@@ -449,6 +449,33 @@ class ActionModel(nn.Module):
             }
         )
 
+    def renamed(self, name_map: Mapping[str, str]) -> ActionModel:
+        """This model with its DOFs renamed: ``name_map`` maps the model's DOF names to the names a user's
+        skeleton gives them (a name map file, :func:`read_name_map`); names it leaves out are kept.
+
+        Raises:
+            ValueError: the map names DOFs the model does not have, or gives two DOFs one name (lists them).
+        """
+        name_map = {str(k): str(v) for k, v in name_map.items()}
+        unknown = [k for k in name_map if k not in self.dof_names]
+        if unknown:
+            raise ValueError(
+                f"the name map renames DOFs that action model {self.action!r} does not have: {unknown} "
+                "(its keys are the model's DOF names, its values the skeleton's)"
+            )
+        names = [name_map.get(n, n) for n in self.dof_names]
+        clashes = sorted({n for n in names if names.count(n) > 1})
+        if clashes:
+            raise ValueError(f"the name map gives several DOFs of the model the same name: {clashes}")
+        lookup = dict(zip(self.dof_names, names, strict=True))
+        return ActionModel(
+            **{
+                **self._init_kwargs(),
+                "dof_names": names,
+                "posture_dofs": [lookup[n] for n in self.posture_dofs],
+            }
+        )
+
     def check_revolute(self, revolute: Tensor) -> ActionModel:
         """``self`` after checking that its angular posture DOFs are those of ``revolute (D_full,)`` bool (a
         skeleton's ``dof_revolute`` in the model's ``dof_names`` order).
@@ -659,17 +686,39 @@ def _revolute_v1(meta: Mapping[str, Any], path: str) -> list[bool]:
     return revolute
 
 
+def read_name_map(path: str | os.PathLike) -> dict[str, str]:
+    """A name map file: YAML (or JSON) ``model DOF name: skeleton DOF name`` lines, e.g.
+    ``LeftUpLeg_Xrotation: l_hip_x``; it renames an action model's DOFs for a skeleton that names them
+    differently (:meth:`ActionModel.renamed`; ``python -m torchpf track --action M.npz --name-map MAP``).
+
+    Raises:
+        ValueError: not a mapping of names to names (says which entry).
+    """
+    from torchpf.io import load_yaml
+
+    with open(path, encoding="utf-8") as f:
+        text = f.read()
+    try:
+        data = load_yaml(text)
+    except Exception as e:  # yaml.YAMLError; the message names the file
+        raise ValueError(f"{path}: not a YAML name map ({' '.join(str(e).split())})") from None
+    if not isinstance(data, dict) or not data:
+        raise ValueError(f"{path}: a name map is a non-empty mapping 'model DOF name: skeleton DOF name'")
+    bad = [k for k, v in data.items() if not isinstance(k, str) or not isinstance(v, str)]
+    if bad:
+        raise ValueError(f"{path}: name map entries must map a name to a name; not {bad[:5]}")
+    return dict(data)
+
+
 def _check_same_dofs(have: Sequence[str], want: Sequence[str], what: str) -> None:
     missing = [n for n in want if n not in set(have)]
     extra = [n for n in have if n not in set(want)]
     if missing or extra or len(want) != len(have):
-
-        def short(names):
-            return f"{names[:5]}{' ...' if len(names) > 5 else ''} ({len(names)})"
-
-        raise ValueError(
-            f"{what} was trained on other DOFs: the pose vector has {short(missing)} that the model lacks, "
-            f"and the model has {short(extra)} that the pose vector lacks"
+        raise ValueError(  # the hint first: a CLI clips long messages, and the lists can be long
+            f"{what} was trained on other DOFs (if the skeleton only names them differently, map the names "
+            "with a name map file of 'model name: skeleton name' lines: python -m torchpf track --name-map "
+            f"FILE, or the action prior's name_map option): the pose vector has {len(missing)} DOFs that the "
+            f"model lacks {missing}, and the model has {len(extra)} DOFs that the pose vector lacks {extra}"
         )
 
 
