@@ -31,6 +31,7 @@ _LAZY = {
     "ActionModel": "priors.action",
     "ActionConstrained": "priors.action",
     "ActionProposal": "priors.action",
+    "read_name_map": "priors.action",
     "ActionBank": "priors.bank",
 }
 

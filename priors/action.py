@@ -49,10 +49,11 @@ until it is accepted (eq. 6), at most ``max_tries`` times.
 
 **File format** (``.npz``, :meth:`ActionModel.save` / :meth:`ActionModel.load`; no pickles): a JSON string
 ``metadata`` (``format``, ``version``, ``action``, ``dof_names``, ``posture_dofs``, ``fps``,
-``cyclic``, ``n_sigma``, ``alpha``, ``training``), the bool array ``revolute (D_full,)`` (since version 2;
+``cyclic``, ``n_sigma``, ``training``), the bool array ``revolute (D_full,)`` (since version 2;
 a version-1 file falls back to :func:`guess_revolute`, with a warning) and float64 arrays ``center (P,)``,
 ``pca_mean (P,)``, ``components (D, P)``, ``explained_variance (D,)``, ``explained_variance_ratio (D,)``,
-``mean_performance (K, D)``, ``std (K, D)``, ``delta (D,)``, ``sigma_phi (D_full,)``, ``alpha ()``; optionally
+``mean_performance (K, D)``, ``std (K, D)``, ``delta (D,)``, ``sigma_phi (D_full,)``, ``alpha (D_full,)``
+(per DOF since version 3; an older file's scalar ``alpha ()`` is broadcast to every DOF); optionally
 the training performances for plots: ``train_coords (M, D)`` (aSpace coordinates of all frames, concatenated),
 ``train_lengths (R,)`` int (frames per performance) and ``train_phase (M,)`` int (matched posture per frame).
 
@@ -78,6 +79,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from priors.diffusion import alpha_summary
 from priors.motion import ConstantVelocity
 from torchpf.distributions import (
     Dynamics,
@@ -92,8 +94,9 @@ from torchpf.io import read_versioned_npz, write_atomic
 
 #: ``metadata["format"]`` of an action-model file.
 FORMAT = "torchpf-action-model"
-#: Current file-format version; files with a higher version are refused. Version 2 added ``revolute``.
-FORMAT_VERSION = 2
+#: Current file-format version; files with a higher version are refused. Version 2 added ``revolute``,
+#: version 3 stores ``alpha`` per DOF ``(D_full,)`` (older files: one scalar, broadcast on load).
+FORMAT_VERSION = 3
 
 _REQUIRED = (
     "center",
@@ -123,6 +126,10 @@ def guess_revolute(dof_names: Sequence[str]) -> list[bool]:
     return [not str(n).lower().endswith("position") for n in dof_names]
 
 
+def _ndim(value) -> int:
+    return value.ndim if isinstance(value, Tensor) else np.ndim(value)
+
+
 def _f64(value, name: str, ndim: int) -> Tensor:
     t = torch.as_tensor(np.asarray(value, dtype=np.float64) if not isinstance(value, Tensor) else value)
     t = t.detach().to("cpu", torch.float64).clone()
@@ -150,7 +157,8 @@ class ActionModel(nn.Module):
         std: ``(K, D)`` σ_k, per-posture standard deviation (> 0).
         delta: ``(D,)`` Δ, the matching spread (> 0).
         sigma_phi: ``(D_full,)`` σ_φ, constant-velocity diffusion std per frame (radians / metres).
-        alpha: α in [0, 1], velocity smoothing of Rius eq. 3.
+        alpha: α in [0, 1], velocity smoothing of Rius eq. 3: ``(D_full,)`` per DOF (Rius §3.1), or a float
+            for every DOF. Stored as the ``(D_full,)`` buffer ``alpha``.
         fps: frame rate (Hz) at which σ_φ and α apply.
         action: action name, e.g. ``"walk"``.
         cyclic: whether ĝ is one cycle of a periodic action (its last posture precedes its first).
@@ -174,7 +182,7 @@ class ActionModel(nn.Module):
         std,
         delta,
         sigma_phi,
-        alpha: float,
+        alpha: float | Tensor,
         fps: float,
         action: str = "action",
         cyclic: bool = False,
@@ -204,6 +212,8 @@ class ActionModel(nn.Module):
         std = _f64(std, "std", 2)
         delta = _f64(delta, "delta", 1)
         sigma_phi = _f64(sigma_phi, "sigma_phi", 1)
+        alpha = _f64(alpha, "alpha", _ndim(alpha))
+        alpha = alpha.expand(Dfull).clone() if alpha.ndim == 0 else alpha
         D = components.shape[0]
         K = g.shape[0]
         expect = {
@@ -214,6 +224,7 @@ class ActionModel(nn.Module):
             "std": (std, (K, D)),
             "delta": (delta, (D,)),
             "sigma_phi": (sigma_phi, (Dfull,)),
+            "alpha": (alpha, (Dfull,)),
         }
         for name, (t, shape) in expect.items():
             if tuple(t.shape) != shape:
@@ -225,8 +236,8 @@ class ActionModel(nn.Module):
             raise ValueError("ActionModel: needs at least one component and one mean posture")
         if (std <= 0).any() or (delta <= 0).any() or (sigma_phi < 0).any():
             raise ValueError("ActionModel: std and delta must be > 0 and sigma_phi >= 0")
-        if not 0.0 <= float(alpha) <= 1.0:
-            raise ValueError(f"ActionModel: alpha must be in [0, 1], got {alpha}")
+        if ((alpha < 0.0) | (alpha > 1.0)).any():
+            raise ValueError(f"ActionModel: alpha must be in [0, 1], got {alpha.tolist()}")
         if not (math.isfinite(float(fps)) and float(fps) > 0):
             raise ValueError(f"ActionModel: fps must be > 0, got {fps}")
         if not (math.isfinite(float(n_sigma)) and float(n_sigma) > 0):
@@ -239,7 +250,6 @@ class ActionModel(nn.Module):
             raise ValueError(f"ActionModel: revolute has shape {tuple(revolute.shape)}, expected ({Dfull},)")
 
         self.action = str(action)
-        self.alpha = float(alpha)
         self.fps = float(fps)
         self.cyclic = bool(cyclic)
         self.n_sigma = float(n_sigma)
@@ -253,6 +263,7 @@ class ActionModel(nn.Module):
         self.register_buffer("std", std)
         self.register_buffer("delta", delta)
         self.register_buffer("sigma_phi", sigma_phi)
+        self.register_buffer("alpha", alpha)
         ev = (
             torch.zeros(D)
             if explained_variance is None
@@ -433,7 +444,35 @@ class ActionModel(nn.Module):
                 **self._init_kwargs(),
                 "dof_names": names,
                 "sigma_phi": self.sigma_phi[perm],
+                "alpha": self.alpha[perm],
                 "revolute": self.revolute[perm],
+            }
+        )
+
+    def renamed(self, name_map: Mapping[str, str]) -> ActionModel:
+        """This model with its DOFs renamed: ``name_map`` maps the model's DOF names to the names a user's
+        skeleton gives them (a name map file, :func:`read_name_map`); names it leaves out are kept.
+
+        Raises:
+            ValueError: the map names DOFs the model does not have, or gives two DOFs one name (lists them).
+        """
+        name_map = {str(k): str(v) for k, v in name_map.items()}
+        unknown = [k for k in name_map if k not in self.dof_names]
+        if unknown:
+            raise ValueError(
+                f"the name map renames DOFs that action model {self.action!r} does not have: {unknown} "
+                "(its keys are the model's DOF names, its values the skeleton's)"
+            )
+        names = [name_map.get(n, n) for n in self.dof_names]
+        clashes = sorted({n for n in names if names.count(n) > 1})
+        if clashes:
+            raise ValueError(f"the name map gives several DOFs of the model the same name: {clashes}")
+        lookup = dict(zip(self.dof_names, names, strict=True))
+        return ActionModel(
+            **{
+                **self._init_kwargs(),
+                "dof_names": names,
+                "posture_dofs": [lookup[n] for n in self.posture_dofs],
             }
         )
 
@@ -539,11 +578,10 @@ class ActionModel(nn.Module):
             "fps": self.fps,
             "cyclic": self.cyclic,
             "n_sigma": self.n_sigma,
-            "alpha": self.alpha,
             "training": (self.training_data or {}).get("info", {}),
         }
         arrays = {name: getattr(self, name).detach().cpu().numpy() for name in _REQUIRED}
-        arrays["alpha"] = np.array(self.alpha)
+        arrays["alpha"] = self.alpha.cpu().numpy()
         arrays["revolute"] = self.revolute.cpu().numpy()
         if self.training_data is not None:
             arrays["train_coords"] = self.training_data["coords"].numpy()
@@ -600,7 +638,7 @@ class ActionModel(nn.Module):
                 std=data["std"],
                 delta=data["delta"],
                 sigma_phi=data["sigma_phi"],
-                alpha=float(data["alpha"]),
+                alpha=data["alpha"],  # (D_full,); a scalar before version 3, broadcast
                 fps=float(meta["fps"]),
                 action=meta.get("action", "action"),
                 cyclic=bool(meta.get("cyclic", False)),
@@ -622,7 +660,7 @@ class ActionModel(nn.Module):
         return (
             f"action={self.action!r}, D_full={len(self.dof_names)}, P={len(self.posture_dofs)}, "
             f"D={self.n_components}, K={self.n_postures}, cyclic={self.cyclic}, fps={self.fps:g}, "
-            f"alpha={self.alpha:.3g}, n_sigma={self.n_sigma:g}"
+            f"alpha={alpha_summary(self.alpha)}, n_sigma={self.n_sigma:g}"
         )
 
 
@@ -648,17 +686,39 @@ def _revolute_v1(meta: Mapping[str, Any], path: str) -> list[bool]:
     return revolute
 
 
+def read_name_map(path: str | os.PathLike) -> dict[str, str]:
+    """A name map file: YAML (or JSON) ``model DOF name: skeleton DOF name`` lines, e.g.
+    ``LeftUpLeg_Xrotation: l_hip_x``; it renames an action model's DOFs for a skeleton that names them
+    differently (:meth:`ActionModel.renamed`; ``python -m torchpf track --action M.npz --name-map MAP``).
+
+    Raises:
+        ValueError: not a mapping of names to names (says which entry).
+    """
+    from torchpf.io import load_yaml
+
+    with open(path, encoding="utf-8") as f:
+        text = f.read()
+    try:
+        data = load_yaml(text)
+    except Exception as e:  # yaml.YAMLError; the message names the file
+        raise ValueError(f"{path}: not a YAML name map ({' '.join(str(e).split())})") from None
+    if not isinstance(data, dict) or not data:
+        raise ValueError(f"{path}: a name map is a non-empty mapping 'model DOF name: skeleton DOF name'")
+    bad = [k for k, v in data.items() if not isinstance(k, str) or not isinstance(v, str)]
+    if bad:
+        raise ValueError(f"{path}: name map entries must map a name to a name; not {bad[:5]}")
+    return dict(data)
+
+
 def _check_same_dofs(have: Sequence[str], want: Sequence[str], what: str) -> None:
     missing = [n for n in want if n not in set(have)]
     extra = [n for n in have if n not in set(want)]
     if missing or extra or len(want) != len(have):
-
-        def short(names):
-            return f"{names[:5]}{' ...' if len(names) > 5 else ''} ({len(names)})"
-
-        raise ValueError(
-            f"{what} was trained on other DOFs: the pose vector has {short(missing)} that the model lacks, "
-            f"and the model has {short(extra)} that the pose vector lacks"
+        raise ValueError(  # the hint first: a CLI clips long messages, and the lists can be long
+            f"{what} was trained on other DOFs (if the skeleton only names them differently, map the names "
+            "with a name map file of 'model name: skeleton name' lines: python -m torchpf track --name-map "
+            f"FILE, or the action prior's name_map option): the pose vector has {len(missing)} DOFs that the "
+            f"model lacks {missing}, and the model has {len(extra)} DOFs that the pose vector lacks {extra}"
         )
 
 

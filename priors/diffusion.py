@@ -338,6 +338,14 @@ def at_rate(std, alpha, from_fps: float, to_fps: float):
     return rescale(std, to_fps, from_fps=from_fps, exponent=1.0), alpha ** (from_fps / to_fps)
 
 
+def alpha_summary(alpha) -> str:
+    """Rius eq. 3's α for a log line: one number, or the range and median of per-DOF values."""
+    a = torch.as_tensor(alpha, dtype=torch.float64).reshape(-1)
+    if a.numel() == 1 or bool((a == a[0]).all()):
+        return f"{float(a[0]):.3g}"
+    return f"{float(a.min()):.3g}..{float(a.max()):.3g} per DOF (median {float(a.median()):.3g})"
+
+
 #: ``metadata["format"]`` of a learned-dynamics file.
 FORMAT = "torchpf-learned-dynamics"
 #: Current file-format version; files with a higher version are refused.

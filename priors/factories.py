@@ -10,7 +10,8 @@ group declared in ``pyproject.toml``. Each factory is ``factory(skeleton, **opti
 * ``constant_velocity``: Rius eq. 3 (:class:`priors.motion.ConstantVelocity`), diffusion as ``random_walk``.
 * ``damped``: Brubaker eq. 13 (:class:`priors.motion.DampedSecondOrder`), diffusion as ``random_walk``.
 * ``action``: the action-constrained dynamics of Rius eq. 6 from a saved action model (``model=path``),
-  constraining the structural random walk (``base="rius"``: the model's constant velocity, eq. 3).
+  constraining the structural random walk (``base="rius"``: the model's constant velocity, eq. 3);
+  ``name_map=FILE`` renames the model's DOFs for a skeleton that names them differently.
 * ``learned``: stds (and α) learned from mocap by ``python -m training fit-dynamics`` (``path=dyn.npz``,
   :class:`priors.diffusion.LearnedDynamics`): a random walk, or Rius eq. 3 with ``model="constant_velocity"``.
 
@@ -26,7 +27,9 @@ Example::
 
 from __future__ import annotations
 
-from priors.action import ActionConstrained, ActionModel
+import os
+
+from priors.action import ActionConstrained, ActionModel, read_name_map
 from priors.diffusion import LearnedDynamics, diffusion_sigma
 from priors.motion import AngularRandomWalk, ConstantVelocity, DampedSecondOrder
 
@@ -76,6 +79,7 @@ def action(
     base: str = "random_walk",
     stds="structural",
     scale: float = 1.0,
+    name_map=None,
     **options,
 ):
     """Action-constrained dynamics (Rius eq. 6) from an action model file (``.npz``) or object.
@@ -88,10 +92,24 @@ def action(
             ``"random_walk"`` (default: :func:`random_walk` with ``stds`` and ``scale``, what the tracker
             uses without a prior, so the prior is never worse than none) or ``"rius"`` (eq. 3, the model's
             constant velocity with its σ_φ and α, as in the paper).
+        name_map: where the skeleton names the model's DOFs differently: a name map file
+            (:func:`priors.action.read_name_map`) or a dict ``{model DOF name: skeleton DOF name}``.
         **options: :class:`ActionConstrained` keywords (``max_tries``, ``min_accept``, ``alpha``, ...).
+
+    Raises:
+        ValueError: the model's DOFs (after ``name_map``) are not the skeleton's; lists the unmatched ones.
     """
+    source = model
     if not isinstance(model, ActionModel):
-        model = ActionModel.load(model, dof_names=skeleton.dof_names)
+        model = ActionModel.load(model)
+    if name_map is not None:
+        model = model.renamed(
+            read_name_map(name_map) if isinstance(name_map, str | os.PathLike) else name_map
+        )
+    try:
+        model = model.for_dof_names(skeleton.dof_names)
+    except ValueError as e:
+        raise ValueError(f"{source}: {e}" if not isinstance(source, ActionModel) else str(e)) from None
     if base == "random_walk":
         options["dynamics"] = random_walk(skeleton, stds=stds, fps=fps, scale=scale)
     elif base == "rius":

@@ -55,6 +55,7 @@ def _parser() -> argparse.ArgumentParser:
     tr.add_argument("--out", required=True, help="output mocap CSV")
     tr.add_argument("--config", help="YAML with Tracker keywords (command-line options override it)")
     tr.add_argument("--action", help="action model (.npz) for the action-constrained prior (Rius)")
+    tr.add_argument("--name-map", help="YAML 'model DOF: skeleton DOF' names, where the skeleton's differ")
     tr.add_argument(
         "--dynamics",
         help="registered motion prior (default random_walk, or action with --action), or a FILE.npz of "
@@ -296,6 +297,10 @@ def _track(args) -> int:
             **kwargs.get("dynamics_options", {}),
             "model": _require_file(args.action, "action model"),
         }
+        if args.name_map:
+            kwargs["dynamics_options"]["name_map"] = _require_file(args.name_map, "name map")
+    elif args.name_map:
+        raise CliError("--name-map renames an action model's DOFs; it needs --action")
     elif args.dynamics and args.dynamics.lower().endswith(".npz"):  # learned stds: the file is an option
         kwargs["dynamics"] = "learned"
         kwargs["dynamics_options"] = {

@@ -120,6 +120,7 @@ def _components(text: str) -> int | float | str:
 def _fit(args: argparse.Namespace) -> int:
     from tqdm.auto import tqdm
 
+    from priors.diffusion import alpha_summary
     from torchpf.skeleton import Skeleton
     from training.fit import HAND_PATTERNS, ActionModelFitter
     from training.mocap import load_csv
@@ -165,7 +166,7 @@ def _fit(args: argparse.Namespace) -> int:
         f"K={model.n_postures} {'cyclic' if model.cyclic else 'acyclic'} mean postures at {model.fps:g} fps, "
         f"synchronisation {'converged' if fitter.converged_ else 'stopped'} after {fitter.n_iter_} "
         f"iterations, "
-        f"alpha={model.alpha:.3g}; accepts {100 * rate:.1f}% of the training frames"
+        f"alpha={alpha_summary(model.alpha)}; accepts {100 * rate:.1f}% of the training frames"
     )
     if fitter.validation_acceptance_ is not None:
         held = fitter.validation_acceptance_
@@ -196,15 +197,8 @@ def _inspect(args: argparse.Namespace) -> int:
     return 0
 
 
-def _alpha_text(alpha) -> str:
-    """A scalar α, or the range of per-DOF ones."""
-    if isinstance(alpha, float):
-        return f"{alpha:.3g}"
-    return f"{float(alpha.min()):.3g}..{float(alpha.max()):.3g} per DOF (median {float(alpha.median()):.3g})"
-
-
 def _fit_dynamics(args: argparse.Namespace) -> int:
-    from priors.diffusion import sigma_summary
+    from priors.diffusion import alpha_summary, sigma_summary
     from torchpf.skeleton import Skeleton
     from training.dynamics import learn_from_files
 
@@ -218,7 +212,7 @@ def _fit_dynamics(args: argparse.Namespace) -> int:
     stats.save(args.out)
     print(
         f"wrote {args.out}: {len(stats.dof_names)} DOFs from {len(args.files)} files "
-        f"({stats.info['frames']} frames) at {stats.fps:g} fps, alpha={_alpha_text(stats.alpha)}"
+        f"({stats.info['frames']} frames) at {stats.fps:g} fps, alpha={alpha_summary(stats.alpha)}"
     )
     print(sigma_summary(skeleton, stats.step_std, fps=stats.fps, source="learned"))
     return 0

@@ -5,8 +5,9 @@
 2. train a walk action model (Rius eq. 1-5) from those CSV files, and check that it accepts a held-out
    performer's walk but not bending or waving;
 3. synthesise a multi-camera sequence of the held-out performer (silhouettes with segmentation noise);
-4. track it with several filters at the same number of likelihood evaluations per frame: CONDENSATION and
-   the annealed particle filter with the angular random walk, and the action-constrained prior;
+4. track it with several filters at the same number of likelihood evaluations per frame: CONDENSATION, the
+   annealed and the partitioned particle filter with the angular random walk, and CONDENSATION with the
+   best learned prior of ``benchmarks/action_prior.py`` (the action model's soft aSpace prior);
 5. print a metrics table (Fontmarty eq. 3-6, ESS, time) and save plots and mask overlays under ``--out``.
 
     python -m training.demo --out out [--particles 600] [--frames 24] [--seed 0]
@@ -178,8 +179,9 @@ def main(argv: list[str] | None = None) -> int:
         "CONDENSATION + random walk": dict(filter="sir", dynamics="random_walk", dynamics_options=rw),
         "APF + random walk": dict(filter="apf", dynamics="random_walk", dynamics_options=rw),
         "PARTITIONED + random walk": dict(filter="partitioned", dynamics="random_walk", dynamics_options=rw),
-        "CONDENSATION + action model": dict(
-            filter="sir", dynamics="action", dynamics_options={"model": model_path, **rw}
+        # the best learned prior of benchmarks/action_prior.py (BENCHMARKS.md, issue 14): soft aSpace prior
+        "CONDENSATION + action model (soft)": dict(
+            filter="sir", dynamics="action", dynamics_options={"model": model_path, "mode": "soft", **rw}
         ),
     }
     truth = skel.fk(angles)

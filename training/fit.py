@@ -51,9 +51,10 @@ in :mod:`training.align`):
    residuals per dimension.
 7. *Constant-velocity statistics* (Rius eq. 3; :func:`training.dynamics.cv_statistics`, shared with
    ``fit-dynamics``): with ``V_t = α V_{t-1} + (1 - α)(φ_t - φ_{t-1})`` and the prediction
-   ``φ̂_{t+1} = φ_t + V_t``, α minimises the squared prediction error over the posture DOFs of all
-   performances (one α: the model file stores a scalar), and σ_φ is the per-DOF robust standard deviation
-   (``1.4826 · median |e|``, insensitive to Euler flips) of the prediction errors ``e`` at that α.
+   ``φ̂_{t+1} = φ_t + V_t``, each DOF's α minimises its squared prediction error over all performances
+   (per DOF, Rius §3.1; stored per DOF in the model file since its version 3), and σ_φ is the per-DOF robust
+   standard deviation (``1.4826 · median |e|``, insensitive to Euler flips) of the prediction errors ``e`` at
+   those α.
 
 Shapes: ``T`` frames, ``D_full`` DOFs of the pose vector, ``P`` posture DOFs, ``D`` aSpace dimensions,
 ``K`` mean postures, ``R`` performances.
@@ -69,12 +70,14 @@ from typing import Any
 
 import numpy as np
 import torch
+from sklearn.base import BaseEstimator
 from sklearn.decomposition import PCA
+from sklearn.exceptions import NotFittedError
 from tqdm.auto import tqdm
 
 from priors.action import ActionModel, guess_revolute
 from training.align import PERIODIC_THRESHOLD, dba_update, dtw_align, estimate_period, initial_mean, resample
-from training.dynamics import cv_statistics, fit_alpha
+from training.dynamics import cv_statistics
 from training.mocap import Motion
 
 #: Default ``exclude`` patterns (case-insensitive regular expressions searched in DOF names): the hand,
@@ -139,11 +142,14 @@ def _smooth_over_postures(values: np.ndarray, width: float, cyclic: bool) -> np.
 
 
 # ================================================================================================ fitter
-class ActionModelFitter:
+class ActionModelFitter(BaseEstimator):
     """Learn an :class:`~priors.action.ActionModel` from performances of one action (sklearn style).
 
-    Configuration is keyword-only and only stored by ``__init__``; :meth:`fit` learns. See the module
-    docstring for the method.
+    Configuration is keyword-only and only stored by ``__init__`` (checked by :meth:`fit`); :meth:`fit`
+    learns. A scikit-learn estimator: ``get_params(deep=True)``, ``set_params(**params)`` and
+    ``sklearn.base.clone`` work as for any sklearn estimator (``sklearn.base.BaseEstimator``). It is not a
+    transformer or predictor of numeric ``X``: :meth:`fit` takes performances (Motions), so the
+    ``check_estimator`` checks that fit numeric arrays do not apply. See the module docstring for the method.
 
     Args:
         n_components: ``"auto"`` (default): chosen by leave-one-performer-out validation
@@ -161,7 +167,7 @@ class ActionModelFitter:
         max_iter: most synchronisation (DBA) iterations.
         sigma_smoothing: std (in postures) of the window that pools residuals for σ_k; 0: none.
         n_sigma: acceptance half-width in σ (Rius eq. 6: 2).
-        alpha: fix α instead of fitting it.
+        alpha: fix α (one value for every DOF) instead of fitting it per DOF.
         validate: also fit ``R`` leave-one-performance-out models and measure how often each accepts the
             performance left out (``validation_acceptance_``): the check that ``D`` generalises. With few
             performers the trailing components only fit the training performers and this rate collapses
@@ -175,9 +181,9 @@ class ActionModelFitter:
     ``periods_`` (per performance, frames or None), ``cyclic_``, ``n_postures_``,
     ``mean_performance_ (K, D)``, ``paths_`` (R arrays ``(T_r,)``: matched mean posture per frame),
     ``costs_`` (mean DTW cost per iteration), ``n_iter_``, ``converged_``, ``std_ (K, D)``, ``delta_ (D,)``,
-    ``alpha_``, ``sigma_phi_ (D_full,)``, ``train_acceptance_`` (mean eq. 6 acceptance probability of the
-    training frames), ``validation_acceptance_`` (``(R,)`` the same for each left-out performance under the
-    model fitted without it, with ``validate=True``; else None), ``validation_curve_`` (a
+    ``alpha_ (D_full,)``, ``sigma_phi_ (D_full,)``, ``train_acceptance_`` (mean eq. 6 acceptance probability
+    of the training frames), ``validation_acceptance_`` (``(R,)`` the same for each left-out performance under
+    the model fitted without it, with ``validate=True``; else None), ``validation_curve_`` (a
     :class:`ValidationCurve` with ``n_components="auto"``, else None).
 
     Example::
@@ -208,16 +214,17 @@ class ActionModelFitter:
         candidates: Sequence[int] = tuple(range(1, 21)),
         min_heldout: float = 0.5,
     ):
-        self.negatives = None if negatives is None else list(negatives)
-        self.candidates = tuple(int(c) for c in candidates)
-        self.min_heldout = float(min_heldout)
+        # sklearn's contract: store every parameter as given (clone and set_params rely on it)
+        self.negatives = negatives
+        self.candidates = candidates
+        self.min_heldout = min_heldout
         self.n_components = n_components
         self.action = action
         self.fps = fps
         self.cyclic = cyclic
         self.n_postures = n_postures
         self.exclude_root = exclude_root
-        self.exclude = tuple(exclude)
+        self.exclude = exclude
         self.max_step = max_step
         self.max_stay = max_stay
         self.max_iter = max_iter
@@ -251,6 +258,12 @@ class ActionModelFitter:
             raise ValueError("need sigma_smoothing >= 0 and n_sigma > 0")
         if self.alpha is not None and not 0.0 <= self.alpha <= 1.0:
             raise ValueError(f"alpha must be in [0, 1], got {self.alpha}")
+        if isinstance(self.exclude, str):
+            raise ValueError(f"exclude must be a sequence of patterns, got the string {self.exclude!r}")
+        if not len(self.candidates) or min(int(c) for c in self.candidates) < 1:
+            raise ValueError(f"candidates must be integers >= 1, got {self.candidates}")
+        if not 0.0 <= float(self.min_heldout) <= 1.0:
+            raise ValueError(f"min_heldout must be in [0, 1], got {self.min_heldout}")
 
     def _check_performances(self, performances: Sequence[Motion]) -> list[Motion]:
         motions = list(performances)
@@ -278,8 +291,10 @@ class ActionModelFitter:
         return out
 
     # ------------------------------------------------------------------------------------------ fit
-    def fit(self, performances: Sequence[Motion], *, skeleton=None) -> ActionModelFitter:
+    def fit(self, performances: Sequence[Motion], y=None, *, skeleton=None) -> ActionModelFitter:
         """Learn the model from ``performances`` (``R`` Motions with the same DOFs); returns ``self``.
+
+        ``y`` is ignored (sklearn's ``fit(X, y=None)`` signature, so the fitter fits in a ``Pipeline``).
 
         ``skeleton`` (the performances' :class:`torchpf.Skeleton`) says which DOFs are angles
         (``skeleton.dof_revolute``, stored in the model); without one, DOF names decide
@@ -291,8 +306,13 @@ class ActionModelFitter:
             curve = select_n_components(
                 motions, skeleton=skeleton, negatives=self.negatives, **self._selection_params()
             )
-            params = {**self.get_params(), "n_components": curve.chosen, "n_sigma": curve.chosen_n_sigma}
-            fitted = ActionModelFitter(**params, negatives=None).fit(motions, skeleton=skeleton)
+            params = {
+                **self.get_params(deep=False),
+                "n_components": curve.chosen,
+                "n_sigma": curve.chosen_n_sigma,
+                "negatives": None,
+            }
+            fitted = ActionModelFitter(**params).fit(motions, skeleton=skeleton)
             self.__dict__.update({k: v for k, v in vars(fitted).items() if k.endswith("_")})
             self.validation_curve_ = curve
             self.model_.training_data["info"]["validation"] = curve.as_dict()
@@ -313,7 +333,7 @@ class ActionModelFitter:
             raise ValueError(f"a performance has fewer than 4 frames at {fps:g} fps")
 
         # 2-3. postures on the action's angle branch
-        posture = select_posture_dofs(names, exclude_root=self.exclude_root, exclude=self.exclude)
+        posture = select_posture_dofs(names, exclude_root=self.exclude_root, exclude=tuple(self.exclude))
         if not posture:
             raise ValueError("no posture DOFs left after exclude_root / exclude")
         pidx = np.array([names.index(n) for n in posture])
@@ -378,9 +398,9 @@ class ActionModelFitter:
 
         # 7. constant-velocity statistics
         deltas = [np.diff(a, axis=0) for a in full]
-        # one α over the posture DOFs (the model file's scalar α), σ_φ per DOF at it: training.dynamics' rule
-        alpha = fit_alpha([d[:, pidx] for d in deltas]) if self.alpha is None else float(self.alpha)
-        sigma_phi = cv_statistics(deltas, alpha)[1]
+        # α and σ_φ per DOF (Rius §3.1): training.dynamics' rule, shared with fit-dynamics
+        alpha, sigma_phi = cv_statistics(deltas, self.alpha, per_dof=True)
+        alpha = np.full(len(names), float(alpha)) if np.ndim(alpha) == 0 else np.asarray(alpha)
 
         self.dof_names_ = names
         self.posture_dofs_ = posture
@@ -424,7 +444,7 @@ class ActionModelFitter:
                 "phase": phase,
                 "info": {
                     "performances": [m.name or f"performance {i}" for i, m in enumerate(motions)],
-                    "config": self.get_params(),
+                    "config": self._config(),
                 },
             },
         )
@@ -433,7 +453,7 @@ class ActionModelFitter:
         )
         self.validation_acceptance_ = None
         if self.validate and len(motions) >= 2:
-            params = {**self.get_params(), "fps": fps, "cyclic": bool(cyclic), "validate": False}
+            params = {**self.get_params(deep=False), "fps": fps, "cyclic": bool(cyclic), "validate": False}
             rates = []
             for r in tqdm(range(len(motions)), desc="validating", disable=not self.progress):
                 sub = (
@@ -466,7 +486,7 @@ class ActionModelFitter:
     def align(self, performance: Motion) -> np.ndarray:
         """Matched mean posture of every frame of a new performance: ``(T',)`` int at the model's fps."""
         if not hasattr(self, "model_"):
-            raise RuntimeError("ActionModelFitter: call fit() first")
+            raise NotFittedError("ActionModelFitter: call fit() first")
         m = performance if performance.dof_names == self.dof_names_ else performance.select(self.dof_names_)
         a = m.angles.detach().to("cpu", torch.float64).numpy().copy()
         ang = self.model_.revolute.numpy()
@@ -479,14 +499,15 @@ class ActionModelFitter:
 
     def _selection_params(self) -> dict[str, Any]:
         return {
-            **{k: v for k, v in self.get_params().items() if k not in ("n_components", "validate")},
-            "candidates": self.candidates,
-            "min_heldout": self.min_heldout,
+            **{k: v for k, v in self._config().items() if k not in ("n_components", "validate")},
+            "candidates": tuple(int(c) for c in self.candidates),
+            "min_heldout": float(self.min_heldout),
             "progress": self.progress,
         }
 
-    def get_params(self) -> dict[str, Any]:
-        """The configuration (JSON-able), as passed to ``__init__``."""
+    def _config(self) -> dict[str, Any]:
+        """The configuration as JSON (stored in the model file): the parameters but ``negatives`` and
+        ``progress``."""
         return {
             "n_components": self.n_components,
             "action": self.action,
@@ -502,8 +523,8 @@ class ActionModelFitter:
             "n_sigma": self.n_sigma,
             "alpha": self.alpha,
             "validate": self.validate,
-            "candidates": list(self.candidates),
-            "min_heldout": self.min_heldout,
+            "candidates": [int(c) for c in self.candidates],
+            "min_heldout": float(self.min_heldout),
         }
 
 

@@ -28,6 +28,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from priors.action import ActionModel
+from priors.diffusion import alpha_summary
 
 
 def describe(model: ActionModel) -> str:
@@ -44,7 +45,7 @@ def describe(model: ActionModel) -> str:
         f"[{model.std.min().item():.4g}, {model.std.max().item():.4g}]; Delta (rad): "
         + ", ".join(f"{v:.3g}" for v in model.delta.tolist()),
         f"  acceptance: |phi~ - g_j| < {model.n_sigma:g} sigma_j in every dimension (Rius eq. 6)",
-        f"  constant velocity (Rius eq. 3): alpha={model.alpha:.3g}, sigma_phi median "
+        f"  constant velocity (Rius eq. 3): alpha={alpha_summary(model.alpha)}, sigma_phi median "
         f"{np.median(model.sigma_phi.numpy()):.3g}, max {model.sigma_phi.max().item():.3g} "
         "(rad or m per frame)",
     ]

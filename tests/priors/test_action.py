@@ -154,7 +154,7 @@ def test_save_load_round_trip(tmp_path):
     for name, buf in model.named_buffers():
         assert torch.equal(buf, getattr(back, name)), name
     assert (back.dof_names, back.posture_dofs, back.action, back.cyclic) == (NAMES, NAMES[2:], "test", True)
-    assert (back.alpha, back.fps, back.n_sigma) == (0.25, 30.0, 2.0)
+    assert (back.fps, back.n_sigma) == (30.0, 2.0) and back.alpha.tolist() == [0.25] * 5
     assert back.training_data["info"] == {"a": 1}
     theta = near_mean_poses(model, 64, 0.1)
     assert torch.equal(
@@ -335,7 +335,8 @@ def test_a_model_fitted_at_another_frame_rate_is_rescaled_to_the_tracking_rate()
     model = tiny_model(fps=120.0, alpha=0.8)
     at30 = model.at_fps(30.0)
     torch.testing.assert_close(at30.sigma_phi, model.sigma_phi * 4.0)
-    assert math.isclose(at30.alpha, 0.8**4) and at30.fps == 30.0 and model.at_fps(120.0) is model
+    torch.testing.assert_close(at30.alpha, torch.full((5,), 0.8**4, dtype=torch.float64))
+    assert at30.fps == 30.0 and model.at_fps(120.0) is model
     torch.testing.assert_close(at30.mean_performance, model.mean_performance)
     dyn = ActionConstrained(model, fps=30.0)
     torch.testing.assert_close(dyn.dynamics.sigma, model.sigma_phi * 4.0)
@@ -380,7 +381,33 @@ def test_the_revolute_mask_decides_what_is_wrapped_and_is_saved(tmp_path):
     assert reordered.revolute.tolist() == revolute[::-1]
     with np.load(tmp_path / "m.npz") as npz:
         assert npz["revolute"].dtype == bool
-        assert __import__("json").loads(str(npz["metadata"]))["version"] == 2
+        assert __import__("json").loads(str(npz["metadata"]))["version"] == 3
+
+
+def test_alpha_is_stored_per_dof_and_older_scalar_files_are_broadcast(tmp_path):
+    alpha = [0.0, 0.1, 0.5, 0.7, 0.9]
+    model = tiny_model(alpha=alpha)
+    assert model.alpha.shape == (5,) and model.alpha.dtype == torch.float64
+    model.save(tmp_path / "m.npz")
+    with np.load(tmp_path / "m.npz") as npz:
+        assert npz["alpha"].shape == (5,)
+        arrays = {k: npz[k] for k in npz.files}
+    assert ActionModel.load(tmp_path / "m.npz").alpha.tolist() == alpha
+    assert ActionModel.load(tmp_path / "m.npz", dof_names=NAMES[::-1]).alpha.tolist() == alpha[::-1]
+    dyn = ActionConstrained(model)  # the default eq. 3 dynamics smooth each DOF with its own alpha
+    torch.testing.assert_close(dyn.dynamics.alpha, model.alpha)
+    meta = __import__("json").loads(str(arrays["metadata"]))
+    meta.update(version=2, alpha=0.25)  # what version 2 wrote: one alpha, in the metadata and as a 0-d array
+    arrays.update(metadata=np.array(__import__("json").dumps(meta)), alpha=np.array(0.25))
+    np.savez(tmp_path / "v2.npz", **arrays)
+    old = ActionModel.load(tmp_path / "v2.npz")
+    assert old.alpha.tolist() == [0.25] * 5
+    old.save(tmp_path / "v3.npz")  # re-saved in the current version, per DOF
+    assert ActionModel.load(tmp_path / "v3.npz").alpha.tolist() == [0.25] * 5
+    with pytest.raises(ValueError, match=r"alpha has shape \(3,\), expected \(5,\)"):
+        tiny_model(alpha=[0.1, 0.2, 0.3])
+    with pytest.raises(ValueError, match="alpha must be in"):
+        tiny_model(alpha=[0.1, 0.2, 0.3, 0.4, 1.5])
 
 
 def test_version_1_files_load_with_the_name_rule_and_a_warning(tmp_path):

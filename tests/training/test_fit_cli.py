@@ -63,7 +63,7 @@ def test_fit_options_reach_the_fitter(walk_csvs, tmp_path, capsys):
     ]
     assert main(argv + walk_csvs) == 0
     model = ActionModel.load(out)
-    assert model.fps == 15 and model.alpha == 0.5 and model.n_sigma == 3
+    assert model.fps == 15 and (model.alpha == 0.5).all() and model.n_sigma == 3
     assert "Hips_Zrotation" in model.posture_dofs and "Hips_Xposition" not in model.posture_dofs
     assert "LeftHand_Xrotation" in model.posture_dofs  # --exclude replaced the default hand patterns
 
