@@ -32,6 +32,9 @@ import torch
 from torchpf.camera import CameraRig
 from torchpf.geometry.capsules import _chunk_rows
 
+#: pose-capsule-point triples per chunk of :func:`capsule_coverage` (its passes then stay in cache)
+_COVERAGE_CHUNK = 1 << 17
+
 __all__ = [
     "Capsules2D",
     "capsule_coverage",
@@ -134,27 +137,49 @@ def distance_to_capsules(points: torch.Tensor, caps: Capsules2D) -> torch.Tensor
     ``(..., C, P)``.
 
     Args:
-        points: (P, 2) points shared by every pose, or (..., P, 2) per pose.
+        points: (P, 2) points shared by every pose, or (..., P, 2) whose leading dims broadcast against the
+            capsules' (per pose, or e.g. (V, 1, P, 2) per camera for (V, N, C) capsules: one matrix product
+            per camera, as in :func:`capsule_coverage`).
         caps: :class:`Capsules2D` (..., C).
 
     Returns:
         (..., P) distances.
     """
-    pa, pb = caps.pa, caps.pb
-    e = pb - pa
-    ee = (e * e).sum(-1, keepdim=True)  # (..., C, 1)
+    batch, C = caps.pa.shape[:-2], caps.pa.shape[-2]
+    G, R, pts = _point_groups(points, batch)
+    pa = caps.pa.reshape(G, R * C, 2)
+    e = caps.pb.reshape(G, R * C, 2) - pa
+    ee = (e * e).sum(-1, keepdim=True)  # (G, R C, 1)
     inv = torch.where(ee > 1e-12, 1.0 / ee.clamp_min(1e-12), torch.zeros_like(ee))
-    pts = points.to(pa)
-    pt = pts.transpose(-1, -2)  # (2, P) or (..., 2, P)
-    pp = (pts * pts).sum(-1).unsqueeze(-2)  # (..., 1, P)
-    qa = pp - 2 * (pa @ pt) + (pa * pa).sum(-1, keepdim=True)  # |p - a|^2, (..., C, P)
-    s = (pts @ e.transpose(-1, -2)).transpose(-1, -2) if points.ndim > 2 else e @ pt
-    s = (s - (pa * e).sum(-1, keepdim=True)) * inv  # the axis parameter of p, unclamped
+    pts = pts.to(pa)
+    pt = pts.transpose(-1, -2)  # (G, 2, P)
+    pp = (pts * pts).sum(-1).unsqueeze(-2)  # (G, 1, P)
+    qa = pp - 2 * (pa @ pt) + (pa * pa).sum(-1, keepdim=True)  # |p - a|^2, (G, R C, P)
+    s = (e @ pt - (pa * e).sum(-1, keepdim=True)) * inv  # the axis parameter of p, unclamped
     t = s.clamp(0.0, 1.0)
     d2 = (qa + ee * t * (t - 2 * s)).clamp_min(1e-12)  # |p - a - t e|^2
-    sdf = d2.sqrt() - (caps.ra.unsqueeze(-1) + t * (caps.rb - caps.ra).unsqueeze(-1))
-    sdf = torch.where(caps.valid.unsqueeze(-1), sdf, torch.full_like(sdf, math.inf))
-    return sdf.amin(-2).clamp_min(0.0)
+    ra, rb = caps.ra.reshape(G, R * C, 1), caps.rb.reshape(G, R * C, 1)
+    sdf = (d2.sqrt() - (ra + t * (rb - ra))).view(G, R, C, -1)
+    sdf = torch.where(caps.valid.reshape(G, R, C, 1), sdf, math.inf)
+    return sdf.amin(-2).clamp_min(0.0).reshape(*batch, -1)
+
+
+def _point_groups(points: torch.Tensor, batch: torch.Size) -> tuple[int, int, torch.Tensor]:
+    """Points (P, 2) or (..., P, 2) broadcasting against the capsules' batch dims ``batch``, split into G
+    groups with points of their own and R rows (the trailing batch dims where the points broadcast) that
+    share them: returns G, R and the (G, P, 2) points. The R rows of a group are one matrix product."""
+    lead = tuple(points.shape[:-2])
+    if len(lead) > len(batch):
+        raise ValueError(
+            f"points {tuple(points.shape)} have more batch dims than the capsules {tuple(batch)}"
+        )
+    aligned = (1,) * (len(batch) - len(lead)) + lead
+    k = len(batch)
+    while k > 0 and aligned[k - 1] == 1:
+        k -= 1
+    P = points.shape[-2]
+    pts = points.expand(*batch[:k], *aligned[k:], P, 2).reshape(math.prod(batch[:k]), P, 2)
+    return math.prod(batch[:k]), math.prod(batch[k:]), pts
 
 
 def capsule_masks(
@@ -328,65 +353,92 @@ def capsule_coverage(
     silhouette cue, §3.2.2).
 
     Args:
-        points: (P, 2) points shared by every pose, or (..., P, 2) per pose (pixels).
+        points: (P, 2) points shared by every pose, or (..., P, 2) whose leading dims broadcast against the
+            capsules' (pixels): per pose, or e.g. (V, 1, P, 2) per camera for (V, N, C) capsules (each
+            camera's points shared by its N poses: one matrix product per camera).
         caps: :class:`Capsules2D` (..., C).
         softness: 0 for a hard 0/1 inside test; > 0 (pixels) for a linear ramp of that width across each
             capsule boundary, which makes the result differentiable in the capsule parameters.
         reduce: "max" (covered by the union, in [0, 1]) or "sum" (number of capsules covering the point).
         exclude_own: with per-pose points laid out capsule-major, M points per capsule (as returned by
             :func:`sample_in_capsules`/:func:`outline_points`), ignore each point's own capsule.
-        chunk_size: poses per chunk.
+        chunk_size: poses per chunk (default: about 2^17 pose-capsule-point triples, which keeps the
+            element-wise passes in the CPU's cache).
 
     Returns:
         (..., P) coverage.
     """
+    if softness <= 0:  # a hard test has no gradient: no graph, and in-place passes (_coverage_chunk)
+        with torch.no_grad():
+            return _coverage(points, caps, softness, reduce, exclude_own, chunk_size)
+    return _coverage(points, caps, softness, reduce, exclude_own, chunk_size)
+
+
+def _coverage(points, caps, softness, reduce, exclude_own, chunk_size) -> torch.Tensor:
     batch = caps.pa.shape[:-2]
-    C = caps.pa.shape[-2]
-    pa, pb = caps.pa.reshape(-1, C, 2), caps.pb.reshape(-1, C, 2)
-    ra, rb = caps.ra.reshape(-1, C), caps.rb.reshape(-1, C)
-    valid = caps.valid.reshape(-1, C)
-    B = pa.shape[0]
-    P = points.shape[-2]
-    shared = points.ndim == 2
-    pts = points if shared else points.expand(*batch, P, 2).reshape(B, P, 2)
-    # Same quadratic-form trick as in 3D: two GEMMs give |p - a|^2 and the segment parameter of p.
-    center = pa.detach().reshape(-1, 2).mean(0) if pa.numel() else pa.new_zeros(2)  # see capsule_distance
-    pc = pts - center
-    Pt = torch.cat([pc, (pc * pc).sum(-1, keepdim=True), torch.ones_like(pc[..., :1])], -1)
-    PtT = Pt.transpose(-1, -2)
-    own = None
+    C, P = caps.pa.shape[-2], points.shape[-2]
+    G, R, pts = _point_groups(points, batch)
+    if G * R == 0:
+        return pts.new_zeros(*batch, P)
+    pa, pb = caps.pa.reshape(G, R, C, 2), caps.pb.reshape(G, R, C, 2)
+    ra, rb = caps.ra.reshape(G, R, C, 1), caps.rb.reshape(G, R, C, 1)
+    valid = caps.valid.reshape(G, R, C, 1)
+    # Same quadratic-form trick as in 3D: two GEMMs give |p - a|^2 and the segment parameter of p, in
+    # coordinates centred on each group's capsules (conditioning, see capsule_distance).
+    center = pa.detach().mean((1, 2), keepdim=True) if pa.numel() else pa.new_zeros(G, 1, 1, 2)
+    pc = pts - center[:, 0]
+    PtT = torch.cat([pc, (pc * pc).sum(-1, keepdim=True), torch.ones_like(pc[..., :1])], -1).transpose(-1, -2)
+    keep = valid
     if exclude_own is not None:
         own = torch.arange(P, device=pts.device) // exclude_own  # owner capsule of each point
-        own = own[None, :] == torch.arange(C, device=pts.device)[:, None]  # (C, P)
-    n = _chunk_rows(C * P, chunk_size)
+        keep = keep & (own[None, :] != torch.arange(C, device=pts.device)[:, None])  # (G, R, C, P)
+    # chunks of (groups, rows) of about `budget` poses
+    budget = int(chunk_size) if chunk_size is not None else max(1, _COVERAGE_CHUNK // max(1, C * P))
+    n_r = min(R, budget)
+    n_g = max(1, budget // n_r) if n_r == R else 1
     outs = []
-    for s in range(0, B, n):
-        sl = slice(s, s + n)
-        a_, b_ = pa[sl] - center, pb[sl] - center
-        e = b_ - a_
-        ee = (e * e).sum(-1)
-        inv = torch.where(ee > 1e-12, 1.0 / ee.clamp_min(1e-12), torch.zeros_like(ee))
-        one = torch.ones_like(ee)[..., None]
-        A_uu = torch.cat([-2 * a_, one, (a_ * a_).sum(-1, keepdim=True)], -1)
-        A_s = torch.cat([e * inv[..., None], 0 * one, (-(a_ * e).sum(-1) * inv)[..., None]], -1)
-        m = A_uu.shape[0]
-        if shared:
-            G_uu = (A_uu.reshape(m * C, 4) @ PtT).view(m, C, P)
-            G_s = (A_s.reshape(m * C, 4) @ PtT).view(m, C, P)
-        else:
-            G_uu, G_s = torch.bmm(A_uu, PtT[sl]), torch.bmm(A_s, PtT[sl])
+    for g0 in range(0, G, n_g):
+        gs = slice(g0, g0 + n_g)
+        row_outs = []
+        for r0 in range(0, R, n_r):
+            rs = slice(r0, r0 + n_r)
+            cov = _coverage_chunk(
+                pa[gs, rs] - center[gs],
+                pb[gs, rs] - center[gs],
+                ra[gs, rs],
+                rb[gs, rs],
+                keep[gs, rs],
+                PtT[gs],
+                softness,
+                reduce,
+            )
+            row_outs.append(cov)
+        outs.append(torch.cat(row_outs, 1) if len(row_outs) > 1 else row_outs[0])
+    return (torch.cat(outs, 0) if len(outs) > 1 else outs[0]).reshape(*batch, P)
+
+
+def _coverage_chunk(a, b, ra, rb, keep, PtT, softness: float, reduce: str) -> torch.Tensor:
+    """Coverage (g, r, P) of the points ``PtT`` (g, 4, P) (rows ``x, y, x^2 + y^2, 1``) by capsules
+    ``a``, ``b`` (g, r, C, 2), ``ra``, ``rb``, ``keep`` (g, r, C, 1) (or (g, r, C, P))."""
+    g, r, C = a.shape[:3]
+    e = b - a
+    ee = (e * e).sum(-1, keepdim=True)  # (g, r, C, 1)
+    inv = torch.where(ee > 1e-12, 1.0 / ee.clamp_min(1e-12), torch.zeros_like(ee))
+    one = torch.ones_like(ee)
+    A_uu = torch.cat([-2 * a, one, (a * a).sum(-1, keepdim=True)], -1)
+    A_s = torch.cat([e * inv, 0 * one, -(a * e).sum(-1, keepdim=True) * inv], -1)
+    G_uu = torch.bmm(A_uu.reshape(g, r * C, 4), PtT).view(g, r, C, -1)  # |p - a|^2
+    G_s = torch.bmm(A_s.reshape(g, r * C, 4), PtT).view(g, r, C, -1)  # axis parameter of p, unclamped
+    if softness > 0:
         tc = G_s.clamp(0.0, 1.0)
-        d2 = G_uu - ee[..., None] * tc * (2 * G_s - tc)
-        r = ra[sl, :, None] + tc * (rb[sl] - ra[sl])[..., None]
-        if softness > 0:
-            # A ramp in distance, linearised in squared distance: (r^2 - d^2) / 2r ~ r - d near the boundary.
-            cov = (0.5 + (r * r - d2) / (2 * softness * r.clamp_min(1e-6))).clamp(0.0, 1.0)
-        else:
-            cov = (d2 <= r * r).to(pts.dtype)
-        keep = valid[sl, :, None]
-        if own is not None:
-            keep = keep & ~own
-        cov = cov * keep
-        outs.append(cov.amax(1) if reduce == "max" else cov.sum(1))
-    out = torch.cat(outs, 0) if outs else pts.new_zeros((0, P))
-    return out.reshape(*batch, P)
+        d2 = G_uu - ee * tc * (2 * G_s - tc)
+        rad = ra + tc * (rb - ra)
+        # A ramp in distance, linearised in squared distance: (r^2 - d^2) / 2r ~ r - d near the boundary.
+        cov = (0.5 + (rad * rad - d2) / (2 * softness * rad.clamp_min(1e-6))).clamp(0.0, 1.0) * keep
+        return cov.amax(2) if reduce == "max" else cov.sum(2)
+    # hard test (run without autograd): in place on the GEMMs' outputs, bool flags; fewer, smaller passes
+    tc = G_s.clamp(0.0, 1.0)
+    d2 = G_uu.sub_(G_s.mul_(2).sub_(tc).mul_(tc).mul_(ee))  # |p - a - tc e|^2
+    rad = tc.mul_(rb - ra).add_(ra)
+    inside = (d2 <= rad.mul_(rad)).logical_and_(keep)
+    return (inside.any(2) if reduce == "max" else inside.sum(2)).to(a.dtype)

@@ -10,6 +10,7 @@ from torchpf.geometry import (
     Capsules2D,
     capsule_coverage,
     capsule_masks,
+    distance_to_capsules,
     outline_points,
     project_capsules,
     sample_in_capsules,
@@ -199,6 +200,42 @@ def test_capsule_coverage_exclude_own_and_gradient():
     cov = capsule_coverage(g, Capsules2D(caps.pa, caps.pb, ra, caps.rb, caps.valid), softness=2.0).sum()
     cov.backward()
     assert torch.isfinite(ra.grad).all()
+
+
+def test_points_per_camera_broadcast_and_chunks():
+    """(V, 1, P, 2) points against (V, N, C) capsules (each camera's points shared by its poses) give what
+    V separate calls give, in any chunking; empty batches give empty results."""
+    caps = _caps(4, n=6, C=3)
+    V, N = 2, 3
+    caps = Capsules2D(
+        *(f.reshape(V, N, *f.shape[1:]) for f in (caps.pa, caps.pb, caps.ra, caps.rb, caps.valid))
+    )
+    caps.valid[1, 2, 0] = False
+    pts = torch.rand(V, 1, 40, 2, generator=torch.Generator().manual_seed(0), dtype=torch.float64) * 80
+    for fn, kw in [
+        (capsule_coverage, {}),
+        (capsule_coverage, {"softness": 1.5}),
+        (capsule_coverage, {"reduce": "sum"}),
+        (distance_to_capsules, {}),
+    ]:
+        loop = torch.stack(
+            [
+                fn(pts[v, 0], Capsules2D(caps.pa[v], caps.pb[v], caps.ra[v], caps.rb[v], caps.valid[v]), **kw)
+                for v in range(V)
+            ]
+        )
+        torch.testing.assert_close(fn(pts, caps, **kw), loop, rtol=1e-12, atol=1e-12)
+        per_pose = pts.expand(V, N, 40, 2)
+        torch.testing.assert_close(fn(per_pose, caps, **kw), loop, rtol=1e-12, atol=1e-12)
+        if fn is capsule_coverage:
+            for chunk in (1, 2, 5):
+                torch.testing.assert_close(
+                    fn(pts, caps, chunk_size=chunk, **kw), loop, rtol=1e-12, atol=1e-12
+                )
+    empty = Capsules2D(*(f[:, :0] for f in (caps.pa, caps.pb, caps.ra, caps.rb, caps.valid)))
+    assert capsule_coverage(pts, empty).shape == (V, 0, 40)
+    with pytest.raises(ValueError, match="batch dims"):
+        capsule_coverage(pts[None], caps)
 
 
 def test_outline_points_lie_on_the_boundary():
