@@ -24,6 +24,7 @@ Example::
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -238,11 +239,15 @@ def sample_pattern(n: int, dim: int = 2, *, dtype=torch.float64, device=None, of
     return torch.frac(offset + i * alpha).to(dtype=dtype, device=device)
 
 
+@functools.lru_cache(maxsize=64)
+def _fixed_pattern(n: int, dtype, device, offset: float) -> torch.Tensor:
+    """:func:`sample_pattern` ``(n, 2)``, built once per size, dtype and device (read-only: shared)."""
+    return sample_pattern(n, 2, dtype=dtype, device=device, offset=offset)
+
+
 def _unit_samples(n_body: int, n_cap: int, generator, dtype, device, batch: tuple[int, ...] = ()):
     if generator is None:
-        ub = sample_pattern(n_body, 2, dtype=dtype, device=device)
-        uc = sample_pattern(n_cap, 2, dtype=dtype, device=device, offset=0.25)
-        return ub, uc
+        return _fixed_pattern(n_body, dtype, device, 0.5), _fixed_pattern(n_cap, dtype, device, 0.25)
     ub = torch.rand(*batch, n_body, 2, generator=generator, dtype=dtype, device=device)
     uc = torch.rand(*batch, 2, n_cap, 2, generator=generator, dtype=dtype, device=device)
     return ub, uc

@@ -120,6 +120,18 @@ def joint_torques(tree: KinematicTree, tw: Tensor, wrench: Tensor) -> Tensor:
     return dot(tw, sub, 1)
 
 
+def pose_gradient(tree: KinematicTree, ap: Tensor, joints: Tensor, grad: Tensor) -> Tensor:
+    """``Jᵀ g``: the gradient ``(D, B)`` in the pose of a function of the joint positions, from its gradient
+    ``grad (J, 3, B)`` in them (the vector-Jacobian product of forward kinematics, summed over the tree by
+    :func:`joint_torques` instead of back-propagated through the FK kernel: a few products for any depth).
+
+    ``ap (D, 2, 3, B)`` and ``joints (J, 3, B)``: :func:`dof_frames` at the pose. Equals autograd through
+    :meth:`Skeleton.fk` to rounding.
+    """
+    rel = joints - joints[:1]
+    return joint_torques(tree, twists(tree, ap, joints[0]), torch.cat([cross(rel, grad), grad], 1))
+
+
 def tree_jacobian(skeleton, theta: Tensor) -> Tensor:
     """Jacobian of :meth:`Skeleton.fk` from the kinematic tree: ``(..., D) -> (..., J, 3, D)``.
 
