@@ -148,21 +148,43 @@ def distance_to_capsules(points: torch.Tensor, caps: Capsules2D) -> torch.Tensor
     """
     batch, C = caps.pa.shape[:-2], caps.pa.shape[-2]
     G, R, pts = _point_groups(points, batch)
-    pa = caps.pa.reshape(G, R * C, 2)
-    e = caps.pb.reshape(G, R * C, 2) - pa
-    ee = (e * e).sum(-1, keepdim=True)  # (G, R C, 1)
+    pts = pts.to(caps.pa)
+    fields = [f.reshape(G, R * C, -1) for f in (caps.pa, caps.pb, caps.ra, caps.rb)]  # (G, R C, 2 or 1)
+    with torch.no_grad():  # every capsule, no graph: the nearest one of each point
+        sdf = _capsule_sdf(pts, *fields)
+        sdf = torch.where(caps.valid.reshape(G, R * C, 1), sdf, math.inf).view(G, R, C, -1)
+        best, nearest = sdf.min(-2)  # (G, R, P)
+    if not (torch.is_grad_enabled() and any(f.requires_grad for f in fields)):
+        return best.clamp_min(0.0).reshape(*batch, -1)
+    # The gradient is the nearest capsule's (that of the min): recomputed with autograd for that capsule
+    # only, (G, R, P) values instead of (G, R, C, P).
+    P = pts.shape[1]
+    rows = torch.arange(R, device=nearest.device).repeat_interleave(P) * C + nearest.reshape(G, R * P)
+    pa, pb, ra, rb = (f.gather(1, rows.unsqueeze(-1).expand(-1, -1, f.shape[-1])) for f in fields)
+    p = pts.repeat(1, R, 1)  # (G, R P, 2), row r's copy of the points
+    e, diff = pb - pa, p - pa
+    ee = (e * e).sum(-1)
+    s = torch.where(ee > 1e-12, (diff * e).sum(-1) / ee.clamp_min(1e-12), 0.0)  # the axis parameter of p
+    t = s.clamp(0.0, 1.0)
+    q = diff - t.unsqueeze(-1) * e
+    d = (q * q).sum(-1).clamp_min(1e-12).sqrt() - (ra + t.unsqueeze(-1) * (rb - ra)).squeeze(-1)
+    d = torch.where(torch.isfinite(best).reshape(G, R * P), d, math.inf)  # no valid capsule: inf
+    return d.clamp_min(0.0).reshape(*batch, -1)
+
+
+def _capsule_sdf(pts, pa, pb, ra, rb) -> torch.Tensor:
+    """Signed distance (pixels) of points ``pts`` (G, P, 2) to capsules ``pa``, ``pb`` (G, K, 2), ``ra``,
+    ``rb`` (G, K, 1): (G, K, P), with ``|p - a|^2`` and ``(p - a) . e`` from matrix products."""
+    e = pb - pa
+    ee = (e * e).sum(-1, keepdim=True)  # (G, K, 1)
     inv = torch.where(ee > 1e-12, 1.0 / ee.clamp_min(1e-12), torch.zeros_like(ee))
-    pts = pts.to(pa)
     pt = pts.transpose(-1, -2)  # (G, 2, P)
     pp = (pts * pts).sum(-1).unsqueeze(-2)  # (G, 1, P)
-    qa = pp - 2 * (pa @ pt) + (pa * pa).sum(-1, keepdim=True)  # |p - a|^2, (G, R C, P)
+    qa = pp - 2 * (pa @ pt) + (pa * pa).sum(-1, keepdim=True)  # |p - a|^2, (G, K, P)
     s = (e @ pt - (pa * e).sum(-1, keepdim=True)) * inv  # the axis parameter of p, unclamped
     t = s.clamp(0.0, 1.0)
     d2 = (qa + ee * t * (t - 2 * s)).clamp_min(1e-12)  # |p - a - t e|^2
-    ra, rb = caps.ra.reshape(G, R * C, 1), caps.rb.reshape(G, R * C, 1)
-    sdf = (d2.sqrt() - (ra + t * (rb - ra))).view(G, R, C, -1)
-    sdf = torch.where(caps.valid.reshape(G, R, C, 1), sdf, math.inf)
-    return sdf.amin(-2).clamp_min(0.0).reshape(*batch, -1)
+    return d2.sqrt() - (ra + t * (rb - ra))
 
 
 def _point_groups(points: torch.Tensor, batch: torch.Size) -> tuple[int, int, torch.Tensor]:
@@ -239,18 +261,27 @@ def sample_pattern(n: int, dim: int = 2, *, dtype=torch.float64, device=None, of
     return torch.frac(offset + i * alpha).to(dtype=dtype, device=device)
 
 
-@functools.lru_cache(maxsize=64)
-def _fixed_pattern(n: int, dtype, device, offset: float) -> torch.Tensor:
-    """:func:`sample_pattern` ``(n, 2)``, built once per size, dtype and device (read-only: shared)."""
-    return sample_pattern(n, 2, dtype=dtype, device=device, offset=offset)
-
-
 def _unit_samples(n_body: int, n_cap: int, generator, dtype, device, batch: tuple[int, ...] = ()):
+    """The unit samples of :func:`sample_in_capsules`: body ``u`` and ``2 s - 1`` (n_body,) (or
+    (*batch, n_body)), and the caps' ``rho cos(phi)``, ``rho sin(phi)`` (2, n_cap) (or (*batch, 2, n_cap)),
+    polar coordinates in a unit half-disc. The fixed pattern is built once per size, dtype and device."""
     if generator is None:
-        return _fixed_pattern(n_body, dtype, device, 0.5), _fixed_pattern(n_cap, dtype, device, 0.25)
+        return _fixed_unit_samples(n_body, n_cap, dtype, device)
     ub = torch.rand(*batch, n_body, 2, generator=generator, dtype=dtype, device=device)
     uc = torch.rand(*batch, 2, n_cap, 2, generator=generator, dtype=dtype, device=device)
-    return ub, uc
+    return _polar(ub, uc)
+
+
+@functools.lru_cache(maxsize=64)
+def _fixed_unit_samples(n_body: int, n_cap: int, dtype, device):
+    ub = sample_pattern(n_body, 2, dtype=dtype, device=device)
+    uc = sample_pattern(n_cap, 2, dtype=dtype, device=device, offset=0.25).expand(2, n_cap, 2)
+    return _polar(ub, uc)
+
+
+def _polar(ub: torch.Tensor, uc: torch.Tensor):
+    rho, phi = uc[..., 0].sqrt(), math.pi * (uc[..., 1] - 0.5)
+    return ub[..., 0], 2 * ub[..., 1] - 1, rho * torch.cos(phi), rho * torch.sin(phi)
 
 
 def sample_in_capsules(
@@ -280,38 +311,35 @@ def sample_in_capsules(
     """
     pa, pb, ra, rb = caps.pa, caps.pb, caps.ra, caps.rb
     batch = pa.shape[:-1]
-    ub, uc = _unit_samples(n_body, n_cap, generator, pa.dtype, pa.device, batch)
+    u, h, cos_c, sin_c = _unit_samples(n_body, n_cap, generator, pa.dtype, pa.device, batch)
+    # Every point is pa + alpha e + beta n with e = pb - pa and n its normal (|n| = |e| = L): two products
+    # over the points once the per-capsule coefficients are known.
     e = pb - pa
+    n = torch.stack([-e[..., 1], e[..., 0]], -1)
     L = e.norm(dim=-1).clamp_min(1e-9)
-    ex = e / L.unsqueeze(-1)
-    nx = torch.stack([-ex[..., 1], ex[..., 0]], -1)
-    # Body: t has density proportional to r(t) = ra + t (rb - ra) (inverse CDF of a linear density).
-    u, s = ub[..., 0], ub[..., 1]
+    inv = (1.0 / L).unsqueeze(-1)
+    # Body: t has density proportional to r(t) = ra + t (rb - ra) (inverse CDF of a linear density), the
+    # offset across the axis is (2 s - 1) r(t).
     ra_, rb_ = ra.unsqueeze(-1), rb.unsqueeze(-1)
     qa = 0.5 * (rb_ - ra_)
     qc = u * 0.5 * (ra_ + rb_)
     t = 2 * qc / (ra_ + (ra_ * ra_ + 4 * qa * qc).clamp_min(0).sqrt()).clamp_min(1e-12)
     rt = ra_ + t * (rb_ - ra_)
-    body = (
-        pa.unsqueeze(-2)
-        + (t * L.unsqueeze(-1)).unsqueeze(-1) * ex.unsqueeze(-2)
-        + ((2 * s - 1) * rt).unsqueeze(-1) * nx.unsqueeze(-2)
-    )
-    w_body = (L * (ra + rb) / n_body).unsqueeze(-1).expand(*batch, n_body)
-    # Caps: uniform in a half-disc facing away from the other end.
-    if uc.ndim == 2:
-        uc = uc.expand(2, n_cap, 2)
-    rho, phi = uc[..., 0].sqrt(), math.pi * (uc[..., 1] - 0.5)
-    caps_pts, caps_w = [], []
-    for k, (centre, rad, out) in enumerate(((pa, ra, -ex), (pb, rb, ex))):
-        rk, pk = rho[..., k, :], phi[..., k, :]
-        dirs = torch.cos(pk).unsqueeze(-1) * out.unsqueeze(-2) + torch.sin(pk).unsqueeze(-1) * nx.unsqueeze(
-            -2
-        )
-        caps_pts.append(centre.unsqueeze(-2) + (rk * rad.unsqueeze(-1)).unsqueeze(-1) * dirs)
-        caps_w.append((0.5 * math.pi * rad * rad / n_cap).unsqueeze(-1).expand(*batch, n_cap))
-    pts = torch.cat([body] + caps_pts, -2)  # (..., C, M, 2)
-    w = torch.cat([w_body] + caps_w, -1) * caps.valid.unsqueeze(-1)
+    # Caps: uniform in a half-disc facing away from the other end (centre pa: along -e; pb: along +e).
+    ra_l, rb_l = ra_ * inv, rb_ * inv
+    alpha = torch.cat([t, -cos_c[..., 0, :] * ra_l, 1 + cos_c[..., 1, :] * rb_l], -1)
+    beta = torch.cat([h * rt * inv, sin_c[..., 0, :] * ra_l, sin_c[..., 1, :] * rb_l], -1)
+    pts = torch.addcmul(pa.unsqueeze(-2), alpha.unsqueeze(-1), e.unsqueeze(-2))
+    pts = torch.addcmul(pts, beta.unsqueeze(-1), n.unsqueeze(-2))  # (..., C, M, 2)
+    half_disc = 0.5 * math.pi / n_cap
+    w = torch.cat(
+        [
+            (L * (ra + rb) / n_body).unsqueeze(-1).expand(*batch, n_body),
+            (half_disc * ra * ra).unsqueeze(-1).expand(*batch, n_cap),
+            (half_disc * rb * rb).unsqueeze(-1).expand(*batch, n_cap),
+        ],
+        -1,
+    ) * caps.valid.unsqueeze(-1)
     C, M = pts.shape[-3], pts.shape[-2]
     return pts.reshape(*batch[:-1], C * M, 2), w.reshape(*batch[:-1], C * M)
 

@@ -238,6 +238,29 @@ def test_points_per_camera_broadcast_and_chunks():
         capsule_coverage(pts[None], caps)
 
 
+def test_distance_to_capsules_value_and_gradient_match_the_closed_form():
+    """The distance and its gradient (recomputed for each point's nearest capsule) against the closed form
+    min over capsules of |p - q(t)| - r(t), differentiated by autograd."""
+    caps = _caps(5, n=4, C=3)
+    caps.valid[2, 1] = False
+    pts = torch.rand(4, 30, 2, generator=torch.Generator().manual_seed(1), dtype=torch.float64) * 90
+    leaves = [f.clone().requires_grad_() for f in (caps.pa, caps.pb, caps.ra, caps.rb)]
+    got = distance_to_capsules(pts, Capsules2D(*leaves, caps.valid))
+    grads = torch.autograd.grad(got.sum(), leaves)
+    ref_leaves = [f.clone().requires_grad_() for f in (caps.pa, caps.pb, caps.ra, caps.rb)]
+    pa, pb = (f.unsqueeze(-2) for f in ref_leaves[:2])  # (N, C, 1, 2)
+    ra, rb = (f.unsqueeze(-1) for f in ref_leaves[2:])  # (N, C, 1)
+    diff, e = pts.unsqueeze(1) - pa, pb - pa
+    t = ((diff * e).sum(-1) / (e * e).sum(-1)).clamp(0, 1)
+    d = (diff - t.unsqueeze(-1) * e).norm(dim=-1) - (ra + t * (rb - ra))
+    ref = torch.where(caps.valid.unsqueeze(-1), d, torch.inf).amin(1).clamp_min(0)
+    torch.testing.assert_close(got, ref, rtol=1e-9, atol=1e-9)
+    for g, r in zip(grads, torch.autograd.grad(ref.sum(), ref_leaves), strict=True):
+        torch.testing.assert_close(g, r, rtol=1e-9, atol=1e-9)
+    with torch.no_grad():
+        torch.testing.assert_close(distance_to_capsules(pts, caps), ref.detach(), rtol=1e-9, atol=1e-9)
+
+
 def test_outline_points_lie_on_the_boundary():
     caps = _caps(3, n=2, C=2)
     pts, ok = outline_points(caps, 5, 3)
