@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import torch
 
-from torchpf.camera import CameraRig
+from torchpf.camera import CameraRig, _camera_to_pixels
 from torchpf.geometry.capsules import _chunk_rows
 
 #: pose-capsule-point triples per chunk of :func:`capsule_coverage` (its passes then stay in cache)
@@ -84,12 +84,13 @@ def project_capsules(camera, a: torch.Tensor, b: torch.Tensor, radius: torch.Ten
         sphere is an ellipse, this circle has its area (exact on the optical axis).
     """
     ends = torch.stack([a, b], -2)  # (..., C, 2, 3)
-    uv = camera.project(ends)
+    K, _, _, dist = camera._params(ends)
     xc = camera.to_camera(ends)
+    uv = _camera_to_pixels(xc, K, dist)  # camera.project(ends), from the camera-frame points
     focal = camera.focal
     if isinstance(camera, CameraRig):  # (..., C, 2, V, k) -> (..., V, C, 2, k)
         uv, xc = uv.movedim(-2, -4), xc.movedim(-2, -4)
-        focal = camera.focal(xc)[:, None, None]
+        focal = (0.5 * (K[:, 0, 0] + K[:, 1, 1]))[:, None, None]  # camera.focal(xc)
     z = xc[..., 2]
     r = radius.to(z)
     # A sphere at angle t off the optical axis images as an ellipse with semi-axes ~ f r / z (across) and

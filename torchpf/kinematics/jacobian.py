@@ -20,8 +20,6 @@ Example::
 
 from __future__ import annotations
 
-import math
-
 import torch
 from torch import Tensor
 
@@ -82,7 +80,7 @@ def dot(a: Tensor, b: Tensor, dim: int) -> Tensor:
     Accumulated with ``addcmul`` one slice at a time: no temporary the size of the broadcast product, which
     is what bounds the speed of these small contractions on a CPU.
     """
-    if math.prod(torch.broadcast_shapes(a.shape, b.shape)) < _SMALL:
+    if max(a.numel(), b.numel()) < _SMALL:  # (torch.broadcast_shapes costs more than a small product)
         return (a * b).sum(dim)  # small batch: fewer operations beat smaller temporaries
     pairs = zip(a.unbind(dim), b.unbind(dim), strict=True)
     x, y = next(pairs)
