@@ -112,22 +112,24 @@ def _per_camera(t: torch.Tensor, S: int, event_dims: int) -> torch.Tensor:
     return t.reshape(S, *t.shape[t.ndim - event_dims - 1 :]).unsqueeze(2)
 
 
-def _sample(image: torch.Tensor, u: torch.Tensor, v: torch.Tensor, mode: str, padding: str) -> torch.Tensor:
-    """``grid_sample`` of images (*G, H, W) at pixel coords u, v (B, ...): one image for all points, or
+def _sample(image: torch.Tensor, uv: torch.Tensor, mode: str, padding: str) -> torch.Tensor:
+    """``grid_sample`` of images (*G, H, W) at pixel coords uv (B, ..., 2): one image for all points, or
     one per group of rows (the B rows are G groups of equal size in the images' order: sequences of a
-    batch as in Body.rows, or the (S, V) images of camera-major (S, V, N, P) points, one call for every
-    camera)."""
+    batch as in Body.rows, or the (S, V) images of camera-major (S, V, N, P, 2) points, one call for every
+    camera). Returns (B, ...)."""
     H, W = image.shape[-2:]
-    images = image.reshape(-1, 1, H, W).to(u)
-    grid = torch.stack([(2 * u + 1) / W - 1, (2 * v + 1) / H - 1], -1).reshape(len(images), 1, -1, 2)
+    images = image.reshape(-1, 1, H, W).to(uv)
+    # pixel centres at integers, align_corners=False: (2 u + 1) / W - 1, one multiply-add for u and v
+    scale, shift = uv.new_tensor([2.0 / W, 2.0 / H]), uv.new_tensor([1.0 / W - 1.0, 1.0 / H - 1.0])
+    grid = torch.addcmul(shift, uv, scale).reshape(len(images), 1, -1, 2)
     out = F.grid_sample(images, grid, mode=mode, padding_mode=padding, align_corners=False)
-    return out.reshape(u.shape)
+    return out.reshape(uv.shape[:-1])
 
 
 def _lookup(image: torch.Tensor, uv: torch.Tensor, mode: str = "bilinear") -> torch.Tensor:
     """Look-up of an (H, W) image (or (S, H, W), one per sequence) at (B, ..., 2) pixel coords (u, v),
     "bilinear" or "nearest"; 0 outside."""
-    return _sample(image, uv[..., 0], uv[..., 1], mode, "zeros")
+    return _sample(image, uv, mode, "zeros")
 
 
 def _distance_lookup(dist: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
@@ -135,11 +137,10 @@ def _distance_lookup(dist: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
     the distance to it, so a marker that leaves the image is not mistaken for a close one. ``dist`` (H, W)
     or (S, H, W), as in :func:`_lookup`."""
     H, W = dist.shape[-2:]
-    u = uv[..., 0].clamp(0, W - 1)
-    v = uv[..., 1].clamp(0, H - 1)
-    inside = torch.stack([u, v], -1)
-    extra = (uv - inside).square().sum(-1).clamp_min(1e-12).sqrt() * ((uv - inside).abs().sum(-1) > 0)
-    return _sample(dist, u, v, "bilinear", "border") + extra
+    inside = torch.clamp(uv, uv.new_zeros(2), uv.new_tensor([W - 1.0, H - 1.0]))
+    off = uv - inside
+    extra = off.square().sum(-1).clamp_min(1e-12).sqrt() * (off.abs().sum(-1) > 0)
+    return _sample(dist, inside, "bilinear", "border") + extra
 
 
 @LIKELIHOODS.register("silhouette")
