@@ -151,10 +151,16 @@ def distance_to_capsules(points: torch.Tensor, caps: Capsules2D) -> torch.Tensor
     G, R, pts = _point_groups(points, batch)
     pts = pts.to(caps.pa)
     fields = [f.reshape(G, R * C, -1) for f in (caps.pa, caps.pb, caps.ra, caps.rb)]  # (G, R C, 2 or 1)
-    with torch.no_grad():  # every capsule, no graph: the nearest one of each point
-        sdf = _capsule_sdf(pts, *fields)
-        sdf = torch.where(caps.valid.reshape(G, R * C, 1), sdf, math.inf).view(G, R, C, -1)
-        best, nearest = sdf.min(-2)  # (G, R, P)
+    with torch.no_grad():  # every capsule, no graph, in cache-sized chunks of rows: each point's nearest
+        valid = caps.valid.reshape(G, R * C, 1)
+        n = max(1, _COVERAGE_CHUNK // max(1, G * C * pts.shape[1]))
+        parts = []
+        for r0 in range(0, R, n):
+            rows = slice(r0 * C, min(R, r0 + n) * C)
+            sdf = _capsule_sdf(pts, *(f[:, rows] for f in fields)).masked_fill_(~valid[:, rows], math.inf)
+            parts.append(sdf.view(G, -1, C, sdf.shape[-1]).min(-2))
+        best = torch.cat([b for b, _ in parts], 1) if len(parts) > 1 else parts[0][0]  # (G, R, P)
+        nearest = torch.cat([i for _, i in parts], 1) if len(parts) > 1 else parts[0][1]
     if not (torch.is_grad_enabled() and any(f.requires_grad for f in fields)):
         return best.clamp_min(0.0).reshape(*batch, -1)
     # The gradient is the nearest capsule's (that of the min): recomputed with autograd for that capsule
@@ -175,17 +181,17 @@ def distance_to_capsules(points: torch.Tensor, caps: Capsules2D) -> torch.Tensor
 
 def _capsule_sdf(pts, pa, pb, ra, rb) -> torch.Tensor:
     """Signed distance (pixels) of points ``pts`` (G, P, 2) to capsules ``pa``, ``pb`` (G, K, 2), ``ra``,
-    ``rb`` (G, K, 1): (G, K, P), with ``|p - a|^2`` and ``(p - a) . e`` from matrix products."""
+    ``rb`` (G, K, 1): (G, K, P), with ``|p - a|^2`` and ``(p - a) . e`` from matrix products; in place
+    (no autograd)."""
     e = pb - pa
     ee = (e * e).sum(-1, keepdim=True)  # (G, K, 1)
     inv = torch.where(ee > 1e-12, 1.0 / ee.clamp_min(1e-12), torch.zeros_like(ee))
     pt = pts.transpose(-1, -2)  # (G, 2, P)
-    pp = (pts * pts).sum(-1).unsqueeze(-2)  # (G, 1, P)
-    qa = pp - 2 * (pa @ pt) + (pa * pa).sum(-1, keepdim=True)  # |p - a|^2, (G, K, P)
-    s = (e @ pt - (pa * e).sum(-1, keepdim=True)) * inv  # the axis parameter of p, unclamped
+    qa = (pa @ pt).mul_(-2).add_((pa * pa).sum(-1, keepdim=True)).add_((pts * pts).sum(-1).unsqueeze(-2))
+    s = (e @ pt).sub_((pa * e).sum(-1, keepdim=True)).mul_(inv)  # the axis parameter of p, unclamped
     t = s.clamp(0.0, 1.0)
-    d2 = (qa + ee * t * (t - 2 * s)).clamp_min(1e-12)  # |p - a - t e|^2
-    return d2.sqrt() - (ra + t * (rb - ra))
+    d2 = s.mul_(-2).add_(t).mul_(t).mul_(ee).add_(qa).clamp_min_(1e-12)  # |p - a - t e|^2
+    return d2.sqrt_().sub_(t.mul_(rb - ra).add_(ra))
 
 
 def _point_groups(points: torch.Tensor, batch: torch.Size) -> tuple[int, int, torch.Tensor]:
