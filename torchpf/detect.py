@@ -187,17 +187,18 @@ def visual_hull(
         torch.arange(-e, e + 1e-9, voxel, dtype=torch.float64) + float(c)
         for e, c in zip(half_extent, centre, strict=True)
     ]
-    grid = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)  # (K, 3)
-    uv = rig.project(grid).round().long()  # (K, V, 2)
-    front = rig.in_front(grid)
-    inside = (uv[..., 0] >= 0) & (uv[..., 0] < W) & (uv[..., 1] >= 0) & (uv[..., 1] < H) & front
-    u, v = uv[..., 0].clamp(0, W - 1), uv[..., 1].clamp(0, H - 1)
-    on_mask = masks[torch.arange(V)[None], v, u] & inside
+    pts = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)  # (K, 3)
     seen = valid & (area > 0)
-    occupied = (on_mask | ~seen[None]).all(-1)
-    if not bool(occupied.any()):
+    # carved one camera at a time, each projecting only the voxels the previous ones kept (a camera without
+    # a silhouette carves nothing)
+    for v in torch.nonzero(seen).reshape(-1).tolist():
+        cam = rig[v]
+        uv = cam.project(pts).round().long()  # (K', 2)
+        inside = (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H) & cam.in_front(pts)
+        on_mask = masks[v, uv[:, 1].clamp(0, H - 1), uv[:, 0].clamp(0, W - 1)] & inside
+        pts = pts[on_mask]
+    if not len(pts):
         return None
-    pts = grid[occupied]
     z = pts[:, 2]
     floor = float(torch.quantile(z, 0.005)) - 0.5 * voxel
     top = float(torch.quantile(z, 0.995)) + 0.5 * voxel

@@ -119,13 +119,34 @@ class Refiner(nn.Module):
             loss = loss - log_prior(x).to(loss)
         return loss
 
+    def objective_and_grad(self, x: Tensor, obs, log_prior=None) -> tuple[Tensor, Tensor]:
+        """``E(x) (..., K)`` and its gradient ``(..., K, D)``, detached. A cue with
+        ``log_likelihood_and_grad`` (every :class:`~torchpf.likelihoods.Likelihood`) gives its gradient
+        without back-propagating through forward kinematics (the tree's vector-Jacobian product, most of
+        the backward pass for a few poses); the prior's goes through autograd."""
+        if hasattr(self.cue, "log_likelihood_and_grad"):
+            loglik, grad = self.cue.log_likelihood_and_grad(x, obs)
+            loss, grad = -loglik, -grad.to(x)
+            if log_prior is not None:
+                with torch.enable_grad():
+                    xr = x.detach().requires_grad_(True)
+                    lp = log_prior(xr).to(loss)
+                    (g,) = torch.autograd.grad(lp.sum(), xr)
+                loss, grad = loss - lp.detach(), grad - g
+            return loss, grad
+        with torch.enable_grad():
+            xr = x.detach().requires_grad_(True)
+            loss = self.objective(xr, obs, log_prior)
+            (grad,) = torch.autograd.grad(loss.sum(), xr)
+        return loss.detach(), grad
+
     def forward(self, x: Tensor, obs, log_prior=None) -> RefineResult:
         """Refine poses ``x (..., K, D)`` on observation ``obs``; returns a :class:`RefineResult`.
 
         ``log_prior``: optional differentiable ``x (..., K, D) -> (..., K)`` log-prior added to the cue.
 
-        Runs with gradients enabled whatever the caller's grad mode (a filter calls it under ``no_grad``);
-        the result is detached. A pose whose objective is not finite is left where it is.
+        Computes its gradients whatever the caller's grad mode (a filter calls it under ``no_grad``); the
+        result is detached. A pose whose objective is not finite is left where it is.
         """
         # A non-finite pose is not refined (and must not reach the cue's backward pass: grid_sample's
         # gradient at a NaN coordinate reads out of bounds); a finite stand-in runs in its place.
@@ -139,24 +160,20 @@ class Refiner(nn.Module):
         best = cur.clone()
         best_loss = torch.full(cur.shape[:-1], math.inf, dtype=cur.dtype, device=cur.device)
         first = None
-        with torch.enable_grad():
-            for step in range(self.steps):
-                xr = cur.detach().requires_grad_(True)
-                loss = self.objective(xr, obs, log_prior)
-                (grad,) = torch.autograd.grad(loss.sum(), xr)
-                loss = loss.detach()
-                if first is None:
-                    first = loss
-                better = loss < best_loss  # NaN compares False: a non-finite iterate is never kept
-                best = torch.where(better.unsqueeze(-1), cur, best)
-                best_loss = torch.where(better, loss, best_loss)
-                grad = torch.nan_to_num(grad, nan=0.0, posinf=0.0, neginf=0.0)
-                m = b1 * m + (1 - b1) * grad
-                v = b2 * v + (1 - b2) * grad * grad
-                k = step + 1
-                decay = 1.0 - 0.9 * step / max(1, self.steps - 1)
-                move = (m / (1 - b1**k)) / ((v / (1 - b2**k)).sqrt() + eps)
-                cur = self.clamp(cur - decay * lr * move)
+        for step in range(self.steps):
+            loss, grad = self.objective_and_grad(cur, obs, log_prior)
+            if first is None:
+                first = loss
+            better = loss < best_loss  # NaN compares False: a non-finite iterate is never kept
+            best = torch.where(better.unsqueeze(-1), cur, best)
+            best_loss = torch.where(better, loss, best_loss)
+            grad = torch.nan_to_num(grad, nan=0.0, posinf=0.0, neginf=0.0)
+            m = b1 * m + (1 - b1) * grad
+            v = b2 * v + (1 - b2) * grad * grad
+            k = step + 1
+            decay = 1.0 - 0.9 * step / max(1, self.steps - 1)
+            move = (m / (1 - b1**k)) / ((v / (1 - b2**k)).sqrt() + eps)
+            cur = self.clamp(cur - decay * lr * move)
         with torch.no_grad():
             last = self.objective(cur, obs, log_prior)
         if first is None:

@@ -20,8 +20,6 @@ Example::
 
 from __future__ import annotations
 
-import math
-
 import torch
 from torch import Tensor
 
@@ -82,7 +80,7 @@ def dot(a: Tensor, b: Tensor, dim: int) -> Tensor:
     Accumulated with ``addcmul`` one slice at a time: no temporary the size of the broadcast product, which
     is what bounds the speed of these small contractions on a CPU.
     """
-    if math.prod(torch.broadcast_shapes(a.shape, b.shape)) < _SMALL:
+    if max(a.numel(), b.numel()) < _SMALL:  # (torch.broadcast_shapes costs more than a small product)
         return (a * b).sum(dim)  # small batch: fewer operations beat smaller temporaries
     pairs = zip(a.unbind(dim), b.unbind(dim), strict=True)
     x, y = next(pairs)
@@ -118,6 +116,18 @@ def joint_torques(tree: KinematicTree, tw: Tensor, wrench: Tensor) -> Tensor:
     J, _, B = wrench.shape
     sub = (dof_mask @ wrench.reshape(J, 6 * B)).reshape(-1, 6, B)
     return dot(tw, sub, 1)
+
+
+def pose_gradient(tree: KinematicTree, ap: Tensor, joints: Tensor, grad: Tensor) -> Tensor:
+    """``Jᵀ g``: the gradient ``(D, B)`` in the pose of a function of the joint positions, from its gradient
+    ``grad (J, 3, B)`` in them (the vector-Jacobian product of forward kinematics, summed over the tree by
+    :func:`joint_torques` instead of back-propagated through the FK kernel: a few products for any depth).
+
+    ``ap (D, 2, 3, B)`` and ``joints (J, 3, B)``: :func:`dof_frames` at the pose. Equals autograd through
+    :meth:`Skeleton.fk` to rounding.
+    """
+    rel = joints - joints[:1]
+    return joint_torques(tree, twists(tree, ap, joints[0]), torch.cat([cross(rel, grad), grad], 1))
 
 
 def tree_jacobian(skeleton, theta: Tensor) -> Tensor:

@@ -62,8 +62,16 @@ class Body:
         joints = skeleton.fk(flat)
         if bone_index is None:
             bone_index = _bone_index(skeleton)
+        return cls.from_joints(skeleton, flat, batch, joints, bone_index)
+
+    @classmethod
+    def from_joints(cls, skeleton, theta, batch, joints, bone_index) -> Body:
+        """The body of already computed joint positions ``joints`` (B, J, 3) of poses ``theta`` (B, D)."""
+        B, C = joints.shape[0], bone_index.shape[0]
+        # index_select: its backward is one index_add (advanced indexing's accumulates through a sort)
+        ends = joints.index_select(1, bone_index.to(joints.device).reshape(-1)).view(B, C, 2, 3)
         radii = skeleton.radii.to(device=joints.device, dtype=joints.dtype)
-        return cls(flat, batch, joints, joints[:, bone_index.to(joints.device)], radii)
+        return cls(theta, batch, joints, ends, radii)
 
     def rows(self, t: torch.Tensor, event_dims: int) -> torch.Tensor:
         """An observation tensor ``(*obs_batch, *event)`` aligned with the B flattened poses: ``(B, *event)``.
@@ -167,6 +175,39 @@ class Likelihood(nn.Module):
         if self.select(obs) is None:
             return theta.new_zeros(theta.shape[:-1])
         return self.log_likelihood_body(self.body(theta), obs)
+
+    def log_likelihood_and_grad(self, theta: torch.Tensor, obs) -> tuple[torch.Tensor, torch.Tensor]:
+        """Log-likelihood (..., N) of poses ``theta`` (..., N, D) and its gradient in ``theta`` (..., N, D),
+        both detached, whatever the grad mode.
+
+        Autograd runs from the joint positions down (projection, the cue); the step through forward
+        kinematics is the tree's vector-Jacobian product (:func:`torchpf.kinematics.jacobian.pose_gradient`)
+        instead of back-propagation through the FK kernel, which for a gradient-based refinement of a few
+        poses is most of the backward pass (:mod:`torchpf.refine`). A skeleton without the tree kernel
+        (``fk_with_axes``) falls back on autograd through ``fk``. Equal to autograd to rounding.
+        """
+        flat, batch = flatten_batch(theta.detach(), 1)
+        sel = self.select(obs)
+        if sel is None:
+            return flat.new_zeros(batch), torch.zeros_like(theta)
+        skeleton = self.skeleton
+        with torch.enable_grad():
+            if not hasattr(skeleton, "fk_with_axes"):
+                x = flat.clone().requires_grad_(True)
+                loglik = self.log_likelihood_body(Body.of(skeleton, x, self.bone_index), sel)
+                (grad,) = torch.autograd.grad(loglik.sum(), x)
+                return loglik.detach().reshape(batch), grad.reshape(theta.shape)
+            from torchpf.kinematics.jacobian import pose_gradient
+
+            with torch.no_grad():
+                axes, pivots, joints = skeleton.fk_with_axes(flat)  # batch last: (D, 3, B), (J, 3, B)
+            leaf = joints.permute(2, 0, 1).requires_grad_(True)  # (B, J, 3)
+            loglik = self.log_likelihood_body(
+                Body.from_joints(skeleton, flat, batch, leaf, self.bone_index), sel
+            )
+            (g,) = torch.autograd.grad(loglik.sum(), leaf)
+        grad = pose_gradient(skeleton.tree, torch.stack([axes, pivots], 1), joints, g.permute(1, 2, 0))
+        return loglik.detach().reshape(batch), grad.t().reshape(theta.shape)
 
     def log_likelihood_body(self, body: Body, obs) -> torch.Tensor:
         """Log-likelihood (..., N) of an already computed :class:`Body` given one frame's ``obs``."""

@@ -17,6 +17,7 @@ Example::
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import torch
@@ -72,37 +73,63 @@ class ImageLikelihood(Likelihood):
     def _distances(self, body: Body, obs) -> torch.Tensor:
         raise NotImplementedError(f"{type(self).__name__} has no per-camera distances")
 
-    def _caps2d(self, a, b, r, height: int, width: int) -> list[Capsules2D]:
-        """Capsules (B, C) projected into each of the V cameras, in the pixel frame of a ``height x width``
-        observation (the cameras resized to it)."""
+    def _caps2d(self, body: Body, S: int, height: int, width: int) -> Capsules2D:
+        """The cue's capsules (:attr:`bones`) projected into the V cameras, in the pixel frame of a
+        ``height x width`` observation (the cameras resized to it), camera-major: ``(S, V, N, C)`` for the
+        B = S N poses of ``S`` sequences (S = 1: one observation for all). In this layout one ``grid_sample``
+        of the (S, V, H, W) images, or one matrix product per camera, serves every camera
+        (:func:`_sample`, :func:`~torchpf.geometry.capsule_coverage`)."""
+        a, b, r = body.capsules(self.bones)
         caps = project_capsules(self.cameras.resized(width, height), a, b, r)  # (B, V, C)
-        return caps.unbind(caps.valid.ndim - 2)
+        return Capsules2D(*(_camera_major(f, S) for f in (caps.pa, caps.pb, caps.ra, caps.rb, caps.valid)))
 
-    def _check_cameras(self, images: torch.Tensor, body: Body, event_dims: int = 3):
+    def _check_cameras(self, images: torch.Tensor, body: Body, event_dims: int = 3) -> int:
         """``images`` (..., V, *event) must have the likelihood's V cameras and leading dims that batch the
-        poses (:meth:`Body.check_batch`)."""
+        poses (:meth:`Body.check_batch`); returns S, the number of observations (1 without leading dims)."""
         n = images.shape[-event_dims]
         if n != self.n_cameras:
             raise ValueError(
                 f"{type(self).__name__}: the observation has {n} cameras, the likelihood {self.n_cameras}"
             )
-        body.check_batch(images.shape[:-event_dims])
+        lead = images.shape[:-event_dims]
+        body.check_batch(lead)
+        return math.prod(lead)
 
 
-def _sample(image: torch.Tensor, u: torch.Tensor, v: torch.Tensor, mode: str, padding: str) -> torch.Tensor:
-    """``grid_sample`` of images (*S, H, W) at pixel coords u, v (B, ...): one image for all points, or
-    one per sequence of a batch (the B rows are S groups of equal size, sequence-major; Body.rows)."""
+def _camera_major(t: torch.Tensor, S: int) -> torch.Tensor:
+    """Per-pose, per-camera values ``(B, V, *e)`` of B = S N poses -> ``(S, V, N, *e)``, contiguous."""
+    return t.reshape(S, -1, *t.shape[1:]).transpose(1, 2).contiguous()
+
+
+def _pose_major(t: torch.Tensor) -> torch.Tensor:
+    """Camera-major ``(S, V, N)`` -> ``(B, V)`` with B = S N, the rows of :class:`Body`."""
+    return t.transpose(1, 2).reshape(-1, t.shape[1])
+
+
+def _per_camera(t: torch.Tensor, S: int, event_dims: int) -> torch.Tensor:
+    """An observation tensor ``(*S, V, *event)`` (or ``(V, *event)``) -> ``(S, V, 1, *event)``: broadcasts
+    against camera-major ``(S, V, N, ...)`` values."""
+    return t.reshape(S, *t.shape[t.ndim - event_dims - 1 :]).unsqueeze(2)
+
+
+def _sample(image: torch.Tensor, uv: torch.Tensor, mode: str, padding: str) -> torch.Tensor:
+    """``grid_sample`` of images (*G, H, W) at pixel coords uv (B, ..., 2): one image for all points, or
+    one per group of rows (the B rows are G groups of equal size in the images' order: sequences of a
+    batch as in Body.rows, or the (S, V) images of camera-major (S, V, N, P, 2) points, one call for every
+    camera). Returns (B, ...)."""
     H, W = image.shape[-2:]
-    images = image.reshape(-1, 1, H, W).to(u)
-    grid = torch.stack([(2 * u + 1) / W - 1, (2 * v + 1) / H - 1], -1).reshape(len(images), 1, -1, 2)
+    images = image.reshape(-1, 1, H, W).to(uv)
+    # pixel centres at integers, align_corners=False: (2 u + 1) / W - 1, one multiply-add for u and v
+    scale, shift = uv.new_tensor([2.0 / W, 2.0 / H]), uv.new_tensor([1.0 / W - 1.0, 1.0 / H - 1.0])
+    grid = torch.addcmul(shift, uv, scale).reshape(len(images), 1, -1, 2)
     out = F.grid_sample(images, grid, mode=mode, padding_mode=padding, align_corners=False)
-    return out.reshape(u.shape)
+    return out.reshape(uv.shape[:-1])
 
 
 def _lookup(image: torch.Tensor, uv: torch.Tensor, mode: str = "bilinear") -> torch.Tensor:
     """Look-up of an (H, W) image (or (S, H, W), one per sequence) at (B, ..., 2) pixel coords (u, v),
     "bilinear" or "nearest"; 0 outside."""
-    return _sample(image, uv[..., 0], uv[..., 1], mode, "zeros")
+    return _sample(image, uv, mode, "zeros")
 
 
 def _distance_lookup(dist: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
@@ -110,11 +137,10 @@ def _distance_lookup(dist: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
     the distance to it, so a marker that leaves the image is not mistaken for a close one. ``dist`` (H, W)
     or (S, H, W), as in :func:`_lookup`."""
     H, W = dist.shape[-2:]
-    u = uv[..., 0].clamp(0, W - 1)
-    v = uv[..., 1].clamp(0, H - 1)
-    inside = torch.stack([u, v], -1)
-    extra = (uv - inside).square().sum(-1).clamp_min(1e-12).sqrt() * ((uv - inside).abs().sum(-1) > 0)
-    return _sample(dist, u, v, "bilinear", "border") + extra
+    inside = torch.clamp(uv, uv.new_zeros(2), uv.new_tensor([W - 1.0, H - 1.0]))
+    off = uv - inside
+    extra = off.square().sum(-1).clamp_min(1e-12).sqrt() * (off.abs().sum(-1) > 0)
+    return _sample(dist, inside, "bilinear", "border") + extra
 
 
 @LIKELIHOODS.register("silhouette")
@@ -178,16 +204,10 @@ class SilhouetteLikelihood(ImageLikelihood):
         return pts, w
 
     def _distances(self, body, obs: Silhouettes):
-        self._check_cameras(obs.masks, body)
-        a, b, r = body.capsules(self.bones)
-        images = obs.blurred(self.blur)
-        out = []
-        for v, caps in enumerate(self._caps2d(a, b, r, obs.height, obs.width)):
-            pts, w = self._model_points(caps)
-            inside = _lookup(images[..., v, :, :], pts, self.interpolation)
-            total = w.sum(-1).clamp_min(1e-9)
-            out.append(1.0 - (w * inside).sum(-1) / total)
-        return torch.stack(out, -1)
+        S = self._check_cameras(obs.masks, body)
+        pts, w = self._model_points(self._caps2d(body, S, obs.height, obs.width))  # (S, V, N, P, 2)
+        inside = _lookup(obs.blurred(self.blur), pts, self.interpolation)
+        return _pose_major(1.0 - (w * inside).sum(-1) / w.sum(-1).clamp_min(1e-9))
 
     def _log_lik(self, body, obs: Silhouettes):
         D = self._distances(body, obs)
@@ -231,16 +251,13 @@ class DualSilhouetteLikelihood(ImageLikelihood):
         self.n_samples, self.softness = int(n_samples), float(softness)
 
     def _distances(self, body, obs: Silhouettes):
-        self._check_cameras(obs.masks, body)
-        a, b, r = body.capsules(self.bones)
+        S = self._check_cameras(obs.masks, body)
+        caps = self._caps2d(body, S, obs.height, obs.width)  # (S, V, N, C)
         fg, ok = obs.foreground_samples(self.n_samples)
-        fg, ok = body.rows(fg.to(a), 3), body.rows(ok.to(a.device), 1)  # (V, n, 2) or (B, V, n, 2)
-        out = []
-        for v, caps in enumerate(self._caps2d(a, b, r, obs.height, obs.width)):
-            # a camera without foreground samples (empty or invalid mask) contributes 0
-            cov = capsule_coverage(fg[..., v, :, :], caps, softness=self.softness)
-            out.append(torch.where(ok[..., v], 1.0 - cov.mean(-1), 0.0))
-        return torch.stack(out, -1)
+        fg, ok = _per_camera(fg.to(caps.pa), S, 2), _per_camera(ok.to(caps.pa.device), S, 0)  # (S, V, 1, ...)
+        cov = capsule_coverage(fg, caps, softness=self.softness)  # (S, V, N, n)
+        # a camera without foreground samples (empty or invalid mask) contributes 0
+        return _pose_major(torch.where(ok, 1.0 - cov.mean(-1), 0.0))
 
     def _log_lik(self, body, obs: Silhouettes):
         D = self._distances(body, obs)
@@ -311,21 +328,17 @@ class SilhouetteDistanceLikelihood(ImageLikelihood):
 
     def _distances(self, body, obs: Silhouettes):
         """(B, V) ``E_l`` in squared pixels."""
-        self._check_cameras(obs.masks, body)
+        S = self._check_cameras(obs.masks, body)
         obs = obs.despeckled(self.despeckle)
-        a, b, r = body.capsules(self.bones)
-        outside = obs.outside_distance()
+        caps = self._caps2d(body, S, obs.height, obs.width)  # (S, V, N, C)
+        pts, w = sample_in_capsules(caps, self.n_body, self.n_cap)  # (S, V, N, P, 2)
+        d_in = _distance_lookup(obs.outside_distance(), pts).clamp_max(self.tau)
+        model_term = (w * d_in * d_in).sum(-1) / w.sum(-1).clamp_min(1e-9)
         fg, ok = obs.foreground_samples(self.n_samples)
-        fg, ok = body.rows(fg.to(a), 3), body.rows(ok.to(a.device), 1)  # (V, n, 2) or (B, V, n, 2)
-        out = []
-        for v, caps in enumerate(self._caps2d(a, b, r, obs.height, obs.width)):
-            pts, w = sample_in_capsules(caps, self.n_body, self.n_cap)
-            d_in = _distance_lookup(outside[..., v, :, :], pts).clamp_max(self.tau)
-            model_term = (w * d_in * d_in).sum(-1) / w.sum(-1).clamp_min(1e-9)
-            d_cov = distance_to_capsules(fg[..., v, :, :], caps).clamp_max(self.tau)
-            # a camera without foreground samples (empty or invalid mask) contributes 0
-            out.append(torch.where(ok[..., v], model_term + (d_cov * d_cov).mean(-1), 0.0))
-        return torch.stack(out, -1)
+        fg, ok = _per_camera(fg.to(caps.pa), S, 2), _per_camera(ok.to(caps.pa.device), S, 0)  # (S, V, 1, ...)
+        d_cov = distance_to_capsules(fg, caps).clamp_max(self.tau)  # (S, V, N, n)
+        # a camera without foreground samples (empty or invalid mask) contributes 0
+        return _pose_major(torch.where(ok, model_term + (d_cov * d_cov).mean(-1), 0.0))
 
     def _log_lik(self, body, obs: Silhouettes):
         return -self._distances(body, obs).sum(-1) / (2 * self.sigma**2)
@@ -388,17 +401,11 @@ class OverlapLikelihood(SilhouetteLikelihood):
         return self._ratios(body, self.select(obs)).reshape(*body.batch, -1)
 
     def _ratios(self, body, obs: Silhouettes):
-        self._check_cameras(obs.masks, body)
-        a, b, r = body.capsules(self.bones)
-        images = obs.blurred(self.blur)
-        area = body.rows(obs.area().to(a), 1)
-        out = []
-        for v, caps in enumerate(self._caps2d(a, b, r, obs.height, obs.width)):
-            pts, w = self._model_points(caps)
-            inter = (w * _lookup(images[..., v, :, :], pts, self.interpolation)).sum(-1)
-            union = w.sum(-1) + area[..., v] - inter
-            out.append(inter / union.clamp_min(1e-9))
-        return torch.stack(out, -1)
+        S = self._check_cameras(obs.masks, body)
+        pts, w = self._model_points(self._caps2d(body, S, obs.height, obs.width))  # (S, V, N, P, 2)
+        inter = (w * _lookup(obs.blurred(self.blur), pts, self.interpolation)).sum(-1)
+        union = w.sum(-1) + _per_camera(obs.area().to(w), S, 0) - inter
+        return _pose_major(inter / union.clamp_min(1e-9))
 
     def _log_lik(self, body, obs: Silhouettes):
         ratio = self._ratios(body, obs)
@@ -465,15 +472,11 @@ class SkinBlobLikelihood(ImageLikelihood):
         return torch.einsum("...jk,jm->...mk", joints, self.marker_matrix.to(joints))
 
     def _distances(self, body, obs: DistanceMaps):
-        self._check_cameras(obs.distance, body)
-        X = self._markers(body.joints)
+        S = self._check_cameras(obs.distance, body)
         H, W = obs.distance.shape[-2:]
-        uv = self.cameras.resized(W, H).project(X)  # (B, M, V, 2)
-        out = [
-            _distance_lookup(obs.distance[..., v, :, :], uv[..., v, :]).mean(-1)
-            for v in range(self.n_cameras)
-        ]
-        return torch.stack(out, -1)
+        uv = self.cameras.resized(W, H).project(self._markers(body.joints))  # (B, M, V, 2)
+        uv = _camera_major(uv.transpose(1, 2), S)  # (S, V, N, M, 2)
+        return _pose_major(_distance_lookup(obs.distance, uv).mean(-1))
 
     def _log_lik(self, body, obs: DistanceMaps):
         D = self._distances(body, obs) * body.rows(obs.valid, 1).to(body.theta.device)
@@ -520,18 +523,14 @@ class ChamferLikelihood(ImageLikelihood):
         self.n_side, self.n_cap, self.outline_only = int(n_side), int(n_cap), bool(outline_only)
 
     def _log_lik(self, body, obs: DistanceMaps):
-        self._check_cameras(obs.distance, body)
-        a, b, r = body.capsules(self.bones)
+        S = self._check_cameras(obs.distance, body)
         H, W = obs.distance.shape[-2:]
-        valid = body.rows(obs.valid.to(a.device), 1).expand(a.shape[0], self.n_cameras)
-        total = a.new_zeros(a.shape[0])
-        M = 2 * self.n_side + 2 * self.n_cap
-        for v, caps in enumerate(self._caps2d(a, b, r, H, W)):
-            pts, ok = outline_points(caps, self.n_side, self.n_cap)
-            w = ok.to(a.dtype)
-            if self.outline_only:
-                w = w * (1.0 - capsule_coverage(pts, caps, exclude_own=M))
-            d2 = _distance_lookup(obs.distance[..., v, :, :], pts).square().clamp_max(self.tau**2)
-            term = (w * d2).sum(-1) / w.sum(-1).clamp_min(1.0) / (2 * self.sigma**2)
-            total = total - torch.where(valid[:, v], term, 0.0)  # a missing camera contributes 0
-        return total
+        caps = self._caps2d(body, S, H, W)  # (S, V, N, C)
+        pts, ok = outline_points(caps, self.n_side, self.n_cap)  # (S, V, N, P, 2)
+        w = ok.to(pts.dtype)
+        if self.outline_only:
+            w = w * (1.0 - capsule_coverage(pts, caps, exclude_own=2 * self.n_side + 2 * self.n_cap))
+        d2 = _distance_lookup(obs.distance, pts).square().clamp_max(self.tau**2)
+        term = (w * d2).sum(-1) / w.sum(-1).clamp_min(1.0) / (2 * self.sigma**2)
+        valid = _per_camera(obs.valid.to(term.device), S, 0)
+        return -_pose_major(torch.where(valid, term, 0.0)).sum(-1)  # a missing camera contributes 0

@@ -10,6 +10,7 @@ from torchpf.geometry import (
     Capsules2D,
     capsule_coverage,
     capsule_masks,
+    distance_to_capsules,
     outline_points,
     project_capsules,
     sample_in_capsules,
@@ -199,6 +200,65 @@ def test_capsule_coverage_exclude_own_and_gradient():
     cov = capsule_coverage(g, Capsules2D(caps.pa, caps.pb, ra, caps.rb, caps.valid), softness=2.0).sum()
     cov.backward()
     assert torch.isfinite(ra.grad).all()
+
+
+def test_points_per_camera_broadcast_and_chunks():
+    """(V, 1, P, 2) points against (V, N, C) capsules (each camera's points shared by its poses) give what
+    V separate calls give, in any chunking; empty batches give empty results."""
+    caps = _caps(4, n=6, C=3)
+    V, N = 2, 3
+    caps = Capsules2D(
+        *(f.reshape(V, N, *f.shape[1:]) for f in (caps.pa, caps.pb, caps.ra, caps.rb, caps.valid))
+    )
+    caps.valid[1, 2, 0] = False
+    pts = torch.rand(V, 1, 40, 2, generator=torch.Generator().manual_seed(0), dtype=torch.float64) * 80
+    for fn, kw in [
+        (capsule_coverage, {}),
+        (capsule_coverage, {"softness": 1.5}),
+        (capsule_coverage, {"reduce": "sum"}),
+        (distance_to_capsules, {}),
+    ]:
+        loop = torch.stack(
+            [
+                fn(pts[v, 0], Capsules2D(caps.pa[v], caps.pb[v], caps.ra[v], caps.rb[v], caps.valid[v]), **kw)
+                for v in range(V)
+            ]
+        )
+        torch.testing.assert_close(fn(pts, caps, **kw), loop, rtol=1e-12, atol=1e-12)
+        per_pose = pts.expand(V, N, 40, 2)
+        torch.testing.assert_close(fn(per_pose, caps, **kw), loop, rtol=1e-12, atol=1e-12)
+        if fn is capsule_coverage:
+            for chunk in (1, 2, 5):
+                torch.testing.assert_close(
+                    fn(pts, caps, chunk_size=chunk, **kw), loop, rtol=1e-12, atol=1e-12
+                )
+    empty = Capsules2D(*(f[:, :0] for f in (caps.pa, caps.pb, caps.ra, caps.rb, caps.valid)))
+    assert capsule_coverage(pts, empty).shape == (V, 0, 40)
+    with pytest.raises(ValueError, match="batch dims"):
+        capsule_coverage(pts[None], caps)
+
+
+def test_distance_to_capsules_value_and_gradient_match_the_closed_form():
+    """The distance and its gradient (recomputed for each point's nearest capsule) against the closed form
+    min over capsules of |p - q(t)| - r(t), differentiated by autograd."""
+    caps = _caps(5, n=4, C=3)
+    caps.valid[2, 1] = False
+    pts = torch.rand(4, 30, 2, generator=torch.Generator().manual_seed(1), dtype=torch.float64) * 90
+    leaves = [f.clone().requires_grad_() for f in (caps.pa, caps.pb, caps.ra, caps.rb)]
+    got = distance_to_capsules(pts, Capsules2D(*leaves, caps.valid))
+    grads = torch.autograd.grad(got.sum(), leaves)
+    ref_leaves = [f.clone().requires_grad_() for f in (caps.pa, caps.pb, caps.ra, caps.rb)]
+    pa, pb = (f.unsqueeze(-2) for f in ref_leaves[:2])  # (N, C, 1, 2)
+    ra, rb = (f.unsqueeze(-1) for f in ref_leaves[2:])  # (N, C, 1)
+    diff, e = pts.unsqueeze(1) - pa, pb - pa
+    t = ((diff * e).sum(-1) / (e * e).sum(-1)).clamp(0, 1)
+    d = (diff - t.unsqueeze(-1) * e).norm(dim=-1) - (ra + t * (rb - ra))
+    ref = torch.where(caps.valid.unsqueeze(-1), d, torch.inf).amin(1).clamp_min(0)
+    torch.testing.assert_close(got, ref, rtol=1e-9, atol=1e-9)
+    for g, r in zip(grads, torch.autograd.grad(ref.sum(), ref_leaves), strict=True):
+        torch.testing.assert_close(g, r, rtol=1e-9, atol=1e-9)
+    with torch.no_grad():
+        torch.testing.assert_close(distance_to_capsules(pts, caps), ref.detach(), rtol=1e-9, atol=1e-9)
 
 
 def test_outline_points_lie_on_the_boundary():

@@ -36,3 +36,17 @@ def test_tree_jacobian_matches_autograd(name, request, interior_poses):
     torch.testing.assert_close(
         jacobian.tree_jacobian(skel, theta), jacobian.autograd_jacobian(skel, theta), atol=atol, rtol=0
     )
+
+
+@pytest.mark.parametrize("name", ["human", "f22", "telescope"])
+def test_pose_gradient_is_the_vector_jacobian_product(name, request, interior_poses):
+    skel = request.getfixturevalue(name)
+    theta = interior_poses(skel, 3, seed=2)
+    g = torch.randn(
+        3, len(skel.joint_names), 3, generator=torch.Generator().manual_seed(0), dtype=theta.dtype
+    )
+    ap, joints = jacobian.dof_frames(skel, theta)
+    got = jacobian.pose_gradient(skel.tree, ap, joints, g.permute(1, 2, 0)).t()
+    want = torch.einsum("bjk,bjkd->bd", g, jacobian.autograd_jacobian(skel, theta))
+    atol = 1e-7 if name == "telescope" else 1e-12
+    torch.testing.assert_close(got, want, atol=atol * float(g.abs().sum()), rtol=0)

@@ -57,6 +57,23 @@ def test_gradients_exist(skel, truth, rig, depth_cam, frame, name):
     assert float(g[:, j].abs().max()) > 0
 
 
+@pytest.mark.parametrize(
+    "name", ["pointcloud", "silhouette", "dual_soft", "silhouette_distance", "keypoints"]
+)
+def test_log_likelihood_and_grad_equals_autograd(skel, truth, rig, depth_cam, frame, name):
+    """The pose gradient through the tree's vector-Jacobian product equals autograd through FK."""
+    lik = make_liks(skel, rig, depth_cam)[name].double()
+    thetas, _ = sweep(truth, skel, "LeftForeArm_Zrotation", half=0.2, n=3)
+    thetas = thetas.reshape(1, 3, -1).double()
+    x = thetas.clone().requires_grad_()
+    want = lik(x, frame)
+    (g,) = torch.autograd.grad(want.sum(), x)
+    got, grad = lik.log_likelihood_and_grad(thetas, frame)
+    assert got.shape == (1, 3) and grad.shape == thetas.shape and not grad.requires_grad
+    torch.testing.assert_close(got, want.detach(), rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(grad, g, rtol=1e-9, atol=1e-9 * float(g.abs().max()))
+
+
 def test_batch_dims_dtype_and_determinism(skel, truth, rig, depth_cam, frame):
     g = torch.Generator().manual_seed(0)
     thetas = truth + 0.05 * torch.randn(2, 3, len(truth), generator=g, dtype=torch.float64)

@@ -1,0 +1,189 @@
+"""Speed of one tracking step on a foreign render (issues 11 and 12: ">= 10 fps" at 500 likelihood
+evaluations per frame, 3 cameras, 160x120 masks, one torch thread).
+
+One CMU clip is rendered by the foreign renderer (:func:`benchmarks.foreign.build_sequence`, as
+``python -m benchmarks.evaluate --renderer foreign`` does) and, in one process, the script times per frame:
+
+* ``apf``: the default tracker, ``Tracker(skel, cameras, n_particles=500, fps=30)`` (APF, ``silhouette`` +
+  ``dual_silhouette``, structural random walk, recovery on), the whole :meth:`~torchpf.Tracker.track`
+  loop (masks read from disk included); ``apf, no recovery``: the same without the lost-track detector;
+* ``hybrid``: ``filter="hybrid"`` (APF layers, then projected Adam on ``K = 4`` poses);
+* ``refine``: :class:`~torchpf.refine.Refiner` alone (the hybrid's default: 20 steps, ``K = 4`` poses near
+  the truth) on each frame's fresh observation (its per-frame caches, the despeckled masks and distance
+  images, built inside the timing as in tracking);
+* one likelihood evaluation of 500 particles for each image cue (caches warm, as in the 2nd-Lth APF layer),
+  median over the frames.
+
+Figures are per frame (per evaluation for the cues) in CPU time of this process (``--clock cpu``, the default:
+the machine is shared, and one torch thread makes CPU time the time a quiet core would take) or wall time.
+``--save FILE.json`` keeps the figures, ``--baseline FILE.json`` prints the ratio to a run saved earlier,
+e.g. at another commit::
+
+    git stash; python -m benchmarks.step_speed --save out/before.json; git stash pop
+    python -m benchmarks.step_speed --baseline out/before.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import time
+from pathlib import Path
+
+import torch
+
+from benchmarks.likelihoods import machine
+
+CMU_DIR = (Path(__file__).resolve().parents[1] / ".." / "shared" / "mocap" / "cmu").resolve()
+
+#: image cues timed one evaluation at a time (all read the silhouettes)
+CUES = ("silhouette", "dual_silhouette", "silhouette_distance", "overlap")
+
+
+class _Clocks:
+    """CPU and wall time of a block: ``with clocks: ...`` adds to ``cpu`` and ``wall`` (seconds)."""
+
+    def __init__(self):
+        self.cpu = self.wall = 0.0
+
+    def __enter__(self):
+        self._c, self._w = time.process_time(), time.perf_counter()
+        return self
+
+    def __exit__(self, *exc):
+        self.cpu += time.process_time() - self._c
+        self.wall += time.perf_counter() - self._w
+
+
+def _track_row(tracker, seq_dir: Path, frames: int, warmup) -> dict:
+    tracker.track(warmup["frames"], init=warmup["init"], seed=0)  # first-call costs out of the timing
+    clocks = _Clocks()
+    with clocks:
+        result = tracker.track(seq_dir, seed=0)
+    return {"cpu": clocks.cpu / frames, "wall": clocks.wall / frames, "evals": result.likelihood_evaluations}
+
+
+def measure(clip: str, work: Path, frames: int, repeat: int, paths) -> dict[str, dict]:
+    """Per-frame seconds ``{path: {"cpu", "wall", "evals"}}`` of the paths named in ``paths``."""
+    from benchmarks.foreign import build_sequence
+    from torchpf.likelihoods import LIKELIHOODS
+    from torchpf.refine import Refiner
+    from torchpf.sequence import read_sequence
+    from torchpf.skeleton import Skeleton
+    from torchpf.tracker import Tracker
+
+    seq = build_sequence(CMU_DIR / f"{clip}.bvh", work / f"{clip}-clean", defects="clean", frames=frames)
+    skel = Skeleton.from_urdf(str(seq.skeleton_path))
+    data = read_sequence(seq.path)
+    T = len(data)
+    truth = data.truth_in(skel.dof_names).float()
+    warmup = {"frames": [data.frame(t) for t in range(2)], "init": truth[0].double()}
+    rows: dict[str, dict] = {}
+
+    def tracker(**options):
+        return Tracker(skel, data.cameras, n_particles=500, fps=30, progress=False, **options)
+
+    if "apf" in paths:
+        rows["apf"] = _track_row(tracker(), seq.path, T, warmup)
+        rows["apf, no recovery"] = _track_row(tracker(recovery=False), seq.path, T, warmup)
+    if "hybrid" in paths:
+        rows["hybrid"] = _track_row(tracker(filter="hybrid"), seq.path, T, warmup)
+    g = torch.Generator().manual_seed(0)
+    spread = torch.where(skel.dof_revolute, 0.05, 0.02).float()
+    if "refine" in paths:
+        refiner = Refiner(skel, data.cameras)
+        refiner(truth[:1].expand(4, -1).clone(), data.frame(0).silhouettes)  # warm-up
+        clocks = _Clocks()
+        for t in range(T):
+            x = skel.clamp(truth[t] + spread * torch.randn(4, truth.shape[-1], generator=g))
+            obs = data.frame(t).silhouettes  # fresh: its caches are built inside the timing, as in tracking
+            with clocks:
+                refiner(x, obs)
+        rows["refine (K=4, 20 steps)"] = {
+            "cpu": clocks.cpu / T,
+            "wall": clocks.wall / T,
+            "evals": refiner.evaluations(4),
+        }
+    if "cues" in paths:
+        for name in CUES:
+            cue = LIKELIHOODS.get(name)(skel, data.cameras)
+            cpu, wall = [], []
+            for t in range(0, T, max(1, T // 5)):
+                x = skel.clamp(truth[t] + spread * torch.randn(500, truth.shape[-1], generator=g))
+                obs = data.frame(t).silhouettes
+                with torch.no_grad():
+                    cue(x, obs)  # fills the observation's caches, as the first APF layer does
+                    for _ in range(repeat):
+                        clocks = _Clocks()
+                        with clocks:
+                            cue(x, obs)
+                        cpu.append(clocks.cpu)
+                        wall.append(clocks.wall)
+            rows[f"cue {name} (500 poses)"] = {
+                "cpu": statistics.median(cpu),
+                "wall": statistics.median(wall),
+                "evals": 500,
+            }
+    return rows
+
+
+def table(rows: dict[str, dict], clock: str, baseline: dict[str, dict] | None = None) -> str:
+    """Markdown table: ms per frame (per evaluation for the cues) and fps on ``clock``, the other clock's ms,
+    and the ratio baseline / now (> 1: faster now) where a baseline row of the same name exists."""
+    other = "wall" if clock == "cpu" else "cpu"
+    head = f"| path | ms/frame ({clock}) | fps ({clock}) | ms/frame ({other}) | evaluations/frame |"
+    rule = "|---|---:|---:|---:|---:|"
+    if baseline is not None:
+        head += f" baseline ms ({clock}) | speed-up |"
+        rule += "---:|---:|"
+    lines = [head, rule]
+    for name, r in rows.items():
+        line = (
+            f"| {name} | {r[clock] * 1e3:.1f} | {1.0 / max(r[clock], 1e-12):.1f} | {r[other] * 1e3:.1f} | "
+            f"{r['evals']} |"
+        )
+        if baseline is not None:
+            b = baseline.get(name)
+            line += " - | - |" if b is None else f" {b[clock] * 1e3:.1f} | {b[clock] / r[clock]:.2f}x |"
+        lines.append(line)
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--clip", default="07_01", help="CMU clip stem (clean masks)")
+    p.add_argument("--frames", type=int, default=60, help="frames of the clip before resampling to 30 fps")
+    p.add_argument(
+        "--paths", default="apf,hybrid,refine,cues", help="comma list of apf, hybrid, refine, cues"
+    )
+    p.add_argument("--repeat", type=int, default=3, help="timed evaluations per frame (cues)")
+    p.add_argument("--work", default="out/step_speed", help="where the sequence directory is written")
+    p.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
+    p.add_argument("--clock", choices=["cpu", "wall"], default="cpu")
+    p.add_argument("--save", help="write the figures to this JSON file")
+    p.add_argument("--baseline", help="JSON file of an earlier --save: adds its ms and the speed-up")
+    args = p.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    paths = {s.strip() for s in args.paths.split(",") if s.strip()}
+    unknown = paths - {"apf", "hybrid", "refine", "cues"}
+    if unknown:
+        p.error(f"unknown path(s) {sorted(unknown)}")
+    baseline = None
+    if args.baseline:
+        with open(args.baseline, encoding="utf-8") as f:
+            baseline = json.load(f)["rows"]
+    print(f"machine: {machine()}; load average {os.getloadavg()[0]:.2f}; clock: {args.clock}")
+    rows = measure(args.clip, Path(args.work), args.frames, args.repeat, paths)
+    print(f"clip {args.clip} (clean), 3 cameras, 160x120 masks; load average now {os.getloadavg()[0]:.2f}\n")
+    print(table(rows, args.clock, baseline))
+    if args.save:
+        Path(args.save).parent.mkdir(parents=True, exist_ok=True)
+        with open(args.save, "w", encoding="utf-8") as f:
+            json.dump({"machine": machine(), "rows": rows}, f, indent=1)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
