@@ -39,3 +39,15 @@ napoleon_use_ivar = True  # "Attributes:" of dataclasses as fields, not as a sec
 
 html_theme = "alabaster"
 html_static_path: list[str] = []
+
+
+def _skip_sklearn_routing(app, what, name, obj, skip, options):
+    """scikit-learn adds ``set_<method>_request`` to estimators (``ActionModelFitter``) with docstrings that
+    cite its own glossary: not ours to document, and unresolvable here."""
+    if name.startswith("set_") and name.endswith("_request"):
+        return True
+    return None
+
+
+def setup(app):
+    app.connect("autodoc-skip-member", _skip_sklearn_routing)
