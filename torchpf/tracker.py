@@ -496,8 +496,9 @@ class Tracker(nn.Module):
                 (:func:`torchpf.detect.fit_body_to_frame`) and track on the fitted body (``result.skeleton``),
                 starting from the pose refined with it. ``None`` (default): only when the body looks
                 uncalibrated (:func:`torchpf.detect.looks_uncalibrated`: a converted skeleton's stick-figure
-                capsules), with a warning; on foreign renders of 11 CMU clips the fitted body took the hybrid
-                tracker from 53 to 43 mm (BENCHMARKS.md). Needs cameras and a silhouette likelihood.
+                capsules), with a warning; on foreign renders of 3 CMU clips it took the hybrid tracker from
+                60 to 47 mm on clean masks and 157 to 120 mm on noisy ones (BENCHMARKS.md). Needs cameras and
+                a silhouette likelihood.
 
         Returns:
             :class:`TrackResult`; ``no_evidence`` flags the frames without usable observations.
