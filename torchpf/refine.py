@@ -103,10 +103,15 @@ class Refiner(nn.Module):
             fixed = fixed | frozen.to(fixed.device)
         self.register_buffer("lr", torch.where(fixed.to(lr.device), 0.0, lr))
 
+    @classmethod
+    def cost(cls, n_poses: int, steps: int) -> int:
+        """Likelihood-evaluation equivalents of refining ``n_poses`` poses with ``steps`` gradient steps
+        (:attr:`cost_per_step` each, plus the final look at the last iterate)."""
+        return int(math.ceil(n_poses * (steps * cls.cost_per_step + 1)))
+
     def evaluations(self, n_poses: int) -> int:
-        """Likelihood-evaluation equivalents of refining ``n_poses`` poses once (``steps`` gradient steps,
-        plus the final look at the last iterate)."""
-        return int(math.ceil(n_poses * (self.steps * self.cost_per_step + 1)))
+        """:meth:`cost` of refining ``n_poses`` poses once with this refiner's ``steps``."""
+        return self.cost(n_poses, self.steps)
 
     def clamp(self, x: Tensor) -> Tensor:
         """Poses ``x (..., D)`` projected onto the skeleton's joint limits (:meth:`Skeleton.clamp`)."""

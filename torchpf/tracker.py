@@ -395,9 +395,7 @@ class Tracker(nn.Module):
                     "without them pass filter_options={'refine_options': {'cue': a differentiable cue}}"
                 )
             if "steps" not in refine_options and "n_refine" not in opts:  # a small budget refines less
-                k, refine_options["steps"] = kind.cls.plan_refinement(
-                    self.n_particles, cost_per_step=Refiner.cost_per_step
-                )
+                k, refine_options["steps"] = kind.cls.plan_refinement(self.n_particles)
                 opts["n_refine"] = k
             opts["refiner"] = Refiner(self.skeleton, self.cameras, **refine_options)
         if self.filter_name in ("apf", "hybrid") and "diffusion_std" not in opts:

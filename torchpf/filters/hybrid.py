@@ -53,6 +53,7 @@ import torch
 from torchpf.filters.annealed import AnnealedParticleFilter
 from torchpf.filters.state import ParticleState, gather_particles
 from torchpf.filters.weights import normalise
+from torchpf.refine import Refiner
 
 __all__ = ["HybridParticleFilter"]
 
@@ -119,23 +120,20 @@ class HybridParticleFilter(AnnealedParticleFilter):
 
     @staticmethod
     def plan_refinement(
-        budget: int, *, n_refine: int = 4, steps: int = 20, cost_per_step: float = 3.0, share: float = 0.5
+        budget: int, *, n_refine: int = 4, steps: int = 20, refiner: type = Refiner, share: float = 0.5
     ) -> tuple[int, int]:
         """``(n_refine, steps)`` such that one frame's refinement costs at most ``share`` of a ``budget`` of
-        likelihood evaluations per frame (``K (steps c + 1) + 2``, :meth:`refine_evaluations`), the rest
-        left to the APF layers: ``K`` falls first (down to the mean alone), then the steps (down to 0, a
+        likelihood evaluations per frame (``refiner.cost(K, steps) + 2``, :meth:`refine_evaluations`), the
+        rest left to the APF layers: ``K`` falls first (down to the mean alone), then the steps (down to 0, a
         refinement that only looks). At 500 evaluations the defaults fit (246); at 100, 1 pose x 15 steps;
         at 30, 1 x 4 (what ``Tracker`` uses when neither is given)."""
         cap = share * int(budget)
         k, steps = max(1, int(n_refine)), max(0, int(steps))
 
-        def cost(k_: int, s_: int) -> float:
-            return k_ * (s_ * cost_per_step + 1) + 2
-
-        while k > 1 and cost(k, steps) > cap:
+        while k > 1 and refiner.cost(k, steps) + 2 > cap:
             k -= 1
-        if cost(k, steps) > cap:
-            steps = max(0, int(((cap - 2) / k - 1) // cost_per_step))
+        if refiner.cost(k, steps) + 2 > cap:  # the most steps that fit: cost(k, s) is linear in s
+            steps = max(0, int(((cap - 2) / k - 1) // refiner.cost_per_step))
         return k, steps
 
     @classmethod
