@@ -112,6 +112,14 @@ def _per_camera(t: torch.Tensor, S: int, event_dims: int) -> torch.Tensor:
     return t.reshape(S, *t.shape[t.ndim - event_dims - 1 :]).unsqueeze(2)
 
 
+def _foreground(obs: Silhouettes, n: int, S: int, like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The masks' ``n`` fixed foreground samples (:meth:`Silhouettes.foreground_samples`) shaped to broadcast
+    against camera-major ``(S, V, N, ...)`` values: points ``(S, V, 1, n, 2)`` in ``like``'s dtype and
+    device, ``ok (S, V, 1)`` False for a camera without samples (empty or invalid mask)."""
+    fg, ok = obs.foreground_samples(n)
+    return _per_camera(fg.to(like), S, 2), _per_camera(ok.to(like.device), S, 0)
+
+
 def _sample(image: torch.Tensor, uv: torch.Tensor, mode: str, padding: str) -> torch.Tensor:
     """``grid_sample`` of images (*G, H, W) at pixel coords uv (B, ..., 2): one image for all points, or
     one per group of rows (the B rows are G groups of equal size in the images' order: sequences of a
@@ -253,8 +261,7 @@ class DualSilhouetteLikelihood(ImageLikelihood):
     def _distances(self, body, obs: Silhouettes):
         S = self._check_cameras(obs.masks, body)
         caps = self._caps2d(body, S, obs.height, obs.width)  # (S, V, N, C)
-        fg, ok = obs.foreground_samples(self.n_samples)
-        fg, ok = _per_camera(fg.to(caps.pa), S, 2), _per_camera(ok.to(caps.pa.device), S, 0)  # (S, V, 1, ...)
+        fg, ok = _foreground(obs, self.n_samples, S, caps.pa)
         cov = capsule_coverage(fg, caps, softness=self.softness)  # (S, V, N, n)
         # a camera without foreground samples (empty or invalid mask) contributes 0
         return _pose_major(torch.where(ok, 1.0 - cov.mean(-1), 0.0))
@@ -334,8 +341,7 @@ class SilhouetteDistanceLikelihood(ImageLikelihood):
         pts, w = sample_in_capsules(caps, self.n_body, self.n_cap)  # (S, V, N, P, 2)
         d_in = _distance_lookup(obs.outside_distance(), pts).clamp_max(self.tau)
         model_term = (w * d_in * d_in).sum(-1) / w.sum(-1).clamp_min(1e-9)
-        fg, ok = obs.foreground_samples(self.n_samples)
-        fg, ok = _per_camera(fg.to(caps.pa), S, 2), _per_camera(ok.to(caps.pa.device), S, 0)  # (S, V, 1, ...)
+        fg, ok = _foreground(obs, self.n_samples, S, caps.pa)
         d_cov = distance_to_capsules(fg, caps).clamp_max(self.tau)  # (S, V, N, n)
         # a camera without foreground samples (empty or invalid mask) contributes 0
         return _pose_major(torch.where(ok, model_term + (d_cov * d_cov).mean(-1), 0.0))
