@@ -28,6 +28,7 @@ Example::
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 
@@ -141,6 +142,12 @@ class Silhouettes:
             dims then match the particles' (``(B, V, H, W)`` masks go with ``(B, N, D)`` particles), as a
             batched :class:`PointCloud`.
         valid: (V,) or (..., V) bool, False for a camera whose frame is missing (its terms are skipped).
+        offset: optional (V,) or (..., V) pixels by which each mask's outline lies outside the body's (a
+            segmentation that dilates the person, > 0, or erodes it, < 0, e.g. a threshold or exposure
+            that differs per camera and frame). The silhouette cues widen (or thin) the projected capsules
+            by it, so that a fattened or thinned mask is not explained by a wrong pose. ``None``: 0.
+            :func:`~torchpf.likelihoods.boundary.estimate_boundary_offset` measures it (what ``Tracker``
+            does each frame).
 
     Derived (cached): :meth:`blurred` soft masks for smooth look-ups, :meth:`foreground_samples` fixed
     stratified points on the foreground (dual silhouette cue), :meth:`area` foreground pixel counts.
@@ -148,6 +155,7 @@ class Silhouettes:
 
     masks: torch.Tensor
     valid: torch.Tensor | None = None
+    offset: torch.Tensor | None = None
     # not an init field: a copy (dataclasses.replace, e.g. the tracker's per-frame device copy) starts with
     # its own empty cache instead of filling the original's
     _cache: dict = field(default_factory=dict, repr=False, init=False)
@@ -164,6 +172,23 @@ class Silhouettes:
             raise ValueError(f"masks must have shape (V, H, W) or (..., V, H, W), got {tuple(m.shape)}")
         self.masks = m
         self.valid = _valid(self.valid, tuple(m.shape[:-2]), "masks")
+        if self.offset is not None:
+            offset = torch.as_tensor(self.offset, dtype=m.dtype if m.is_floating_point() else None)
+            if offset.shape != self.valid.shape:
+                raise ValueError(
+                    f"offset must have one value per mask, shape {tuple(self.valid.shape)}, "
+                    f"got {tuple(offset.shape)}"
+                )
+            if not bool(torch.isfinite(offset).all()):
+                raise ValueError("offset must be finite (pixels)")
+            self.offset = offset.to(m.device)
+
+    def with_offset(self, offset: torch.Tensor | None) -> Silhouettes:
+        """These masks with the outline ``offset`` (pixels, see the class docstring); the derived images
+        (distance transforms, samples) do not depend on it and are shared with ``self``."""
+        out = dataclasses.replace(self, offset=offset)
+        out._cache = self._cache
+        return out
 
     @property
     def height(self) -> int:
@@ -200,7 +225,9 @@ class Silhouettes:
             )
             out = torch.from_numpy(np.stack([cv2.medianBlur(m, k) for m in hard]) > 127)
             self._cache[key] = Silhouettes(out.reshape(self.masks.shape).to(self.masks), valid=self.valid)
-        return self._cache[key]
+        # the cache is shared by with_offset copies: the offset is this object's
+        cleaned = self._cache[key]
+        return cleaned if cleaned.offset is self.offset else cleaned.with_offset(self.offset)
 
     def area(self) -> torch.Tensor:
         """(..., V) foreground area in pixels (sum of the mask)."""

@@ -136,6 +136,16 @@ def _to_device(obs, device, dtype):
     return obs
 
 
+def _with_outline_offset(obs, cue, pose):
+    """``obs`` (a :class:`Frame` or :class:`Silhouettes`) with its masks' outline offset measured by ``cue``
+    (:meth:`~torchpf.likelihoods.images.ImageLikelihood.boundary_offset`) at ``pose``, the last estimate."""
+    sil = obs.silhouettes if isinstance(obs, Frame) else obs
+    if not isinstance(sil, Silhouettes) or sil.offset is not None or not bool(torch.isfinite(pose).all()):
+        return obs  # nothing to measure, an offset the caller gave, or no estimate to measure it at
+    sil = sil.with_offset(cue.boundary_offset(pose, sil))
+    return dataclasses.replace(obs, silhouettes=sil) if isinstance(obs, Frame) else sil
+
+
 def _evidence(obs, fields) -> bool:
     """Whether one frame's observations can tell poses apart for a likelihood reading ``fields`` of a
     :class:`Frame` (None: unknown, any field counts). Objects other than the containers: assumed."""
@@ -230,6 +240,10 @@ class Tracker(nn.Module):
             :mod:`priors.diffusion`).
         recovery: detect a lost track and re-acquire it from the silhouettes
             (:class:`torchpf.detect.Recovery`, Brubaker §6).
+        boundary_offset: before each frame, measure how far each mask's outline lies outside the body's at
+            the last estimate (:meth:`~torchpf.likelihoods.images.ImageLikelihood.boundary_offset`: a
+            segmentation that fattens or thins the person per camera and frame) and let the silhouette cues
+            widen or thin the projected capsules by it (:attr:`~torchpf.observations.Silhouettes.offset`).
         device, dtype: where and in which precision to run (observations are moved per frame).
         progress: tqdm progress bar.
     """
@@ -251,6 +265,7 @@ class Tracker(nn.Module):
         init_spread: float | torch.Tensor = 0.02,
         fps: float | None = None,
         recovery: bool = True,
+        boundary_offset: bool = False,
         device: str | torch.device | None = None,
         dtype: torch.dtype = torch.float32,
         progress: bool = True,
@@ -296,6 +311,7 @@ class Tracker(nn.Module):
         self.init_spread = init_spread
         self.fps = fps
         self.recovery = recovery
+        self.boundary_offset = bool(boundary_offset)
         self.device = torch.device(device) if device is not None else torch.device("cpu")
         self.dtype = dtype
         self.progress = progress
@@ -576,10 +592,14 @@ class Tracker(nn.Module):
         x0 = self.initial_particles(init, generator)
         evidence, observed = [], _observed_fields(self.likelihood)
 
+        outline = self._outline_cue() if self.boundary_offset else None
+        latest = {"pose": init.to(self.device, self.dtype)}
+
         def observe(t: int):  # one frame in memory at a time: read (lazily), moved, tracked, dropped
             f = frames[t]
             evidence.append(_evidence(f, observed))
-            return _to_device(f, self.device, self.dtype)
+            f = _to_device(f, self.device, self.dtype)
+            return f if outline is None else _with_outline_offset(f, outline, latest["pose"])
 
         t0 = time.perf_counter()
         if self.temperature == "auto":
@@ -591,6 +611,7 @@ class Tracker(nn.Module):
         try:
             for state in self.filter.iterate(_Frames(len(frames), observe), x0, generator, hook=hook):
                 fields, stats = frame_summary(state)
+                latest["pose"] = fields["estimates"]
                 buffer.add({**fields, **{f"stats/{k}": v for k, v in stats.items()}})
                 if writer is not None:
                     writer.write(fields["estimates"].detach().to("cpu", torch.float64))
@@ -643,6 +664,15 @@ class Tracker(nn.Module):
         if getattr(self, "_detector", None) is None:
             self._detector = PersonDetector(self.skeleton, self.cameras)
         return self._detector
+
+    def _outline_cue(self):
+        """The first silhouette cue of the likelihood (it measures :attr:`Silhouettes.offset`), or None."""
+        from torchpf.likelihoods.images import ImageLikelihood
+
+        for module in self.likelihood.modules():
+            if isinstance(module, ImageLikelihood) and module.obs_type is Silhouettes:
+                return module
+        return None
 
     def _reads_silhouettes(self) -> bool:
         """Whether the likelihood reads silhouettes through cameras (what refinement and fitting need)."""

@@ -126,8 +126,9 @@ def _uneven_capsule_sdf(p, pa, pb, ra, rb):
     return torch.where(nested, d_nested, d)
 
 
-def distance_to_capsules(points: torch.Tensor, caps: Capsules2D) -> torch.Tensor:
-    """Distance (pixels) from image points to the union of projected capsules, 0 inside.
+def distance_to_capsules(points: torch.Tensor, caps: Capsules2D, *, signed: bool = False) -> torch.Tensor:
+    """Distance (pixels) from image points to the union of projected capsules, 0 inside (``signed``: minus
+    the depth inside, the union's signed distance).
 
     ``min_c max(0, |p - q_c(t)| - r_c(t))`` with ``q_c(t)`` the point of capsule ``c``'s axis nearest to
     ``p`` and ``r_c(t)`` its radius interpolated there: the region of :func:`sample_in_capsules` (the hull of
@@ -161,8 +162,9 @@ def distance_to_capsules(points: torch.Tensor, caps: Capsules2D) -> torch.Tensor
             parts.append(sdf.view(G, -1, C, sdf.shape[-1]).min(-2))
         best = torch.cat([b for b, _ in parts], 1) if len(parts) > 1 else parts[0][0]  # (G, R, P)
         nearest = torch.cat([i for _, i in parts], 1) if len(parts) > 1 else parts[0][1]
+    floor = -math.inf if signed else 0.0
     if not (torch.is_grad_enabled() and any(f.requires_grad for f in fields)):
-        return best.clamp_min(0.0).reshape(*batch, -1)
+        return best.clamp_min(floor).reshape(*batch, -1)
     # The gradient is the nearest capsule's (that of the min): recomputed with autograd for that capsule
     # only, (G, R, P) values instead of (G, R, C, P).
     P = pts.shape[1]
@@ -176,7 +178,7 @@ def distance_to_capsules(points: torch.Tensor, caps: Capsules2D) -> torch.Tensor
     q = diff - t.unsqueeze(-1) * e
     d = (q * q).sum(-1).clamp_min(1e-12).sqrt() - (ra + t.unsqueeze(-1) * (rb - ra)).squeeze(-1)
     d = torch.where(torch.isfinite(best).reshape(G, R * P), d, math.inf)  # no valid capsule: inf
-    return d.clamp_min(0.0).reshape(*batch, -1)
+    return d.clamp_min(floor).reshape(*batch, -1)
 
 
 def _capsule_sdf(pts, pa, pb, ra, rb) -> torch.Tensor:

@@ -73,15 +73,55 @@ class ImageLikelihood(Likelihood):
     def _distances(self, body: Body, obs) -> torch.Tensor:
         raise NotImplementedError(f"{type(self).__name__} has no per-camera distances")
 
-    def _caps2d(self, body: Body, S: int, height: int, width: int) -> Capsules2D:
+    def _caps2d(self, body: Body, S: int, height: int, width: int, offset=None) -> Capsules2D:
         """The cue's capsules (:attr:`bones`) projected into the V cameras, in the pixel frame of a
         ``height x width`` observation (the cameras resized to it), camera-major: ``(S, V, N, C)`` for the
         B = S N poses of ``S`` sequences (S = 1: one observation for all). In this layout one ``grid_sample``
         of the (S, V, H, W) images, or one matrix product per camera, serves every camera
-        (:func:`_sample`, :func:`~torchpf.geometry.capsule_coverage`)."""
+        (:func:`_sample`, :func:`~torchpf.geometry.capsule_coverage`). ``offset``: the masks' outline offset
+        ``(*S, V)`` pixels (:attr:`Silhouettes.offset`) added to every projected radius (kept >= 0.5 px)."""
         a, b, r = body.capsules(self.bones)
         caps = project_capsules(self.cameras.resized(width, height), a, b, r)  # (B, V, C)
-        return Capsules2D(*(_camera_major(f, S) for f in (caps.pa, caps.pb, caps.ra, caps.rb, caps.valid)))
+        pa, pb, ra, rb, valid = (
+            _camera_major(f, S) for f in (caps.pa, caps.pb, caps.ra, caps.rb, caps.valid)
+        )
+        if offset is not None:
+            off = _per_camera(offset.to(ra), S, 0).unsqueeze(-1)  # (S, V, 1, 1)
+            ra, rb = (ra + off).clamp_min(0.5), (rb + off).clamp_min(0.5)
+        return Capsules2D(pa, pb, ra, rb, valid)
+
+    @torch.no_grad()
+    def boundary_offset(
+        self, pose: torch.Tensor, obs: Silhouettes, *, limit: float = 2.0, despeckle: int = 3
+    ):
+        """The masks' outline offset (:attr:`Silhouettes.offset`, pixels) measured against this cue's body at
+        a reference ``pose`` ``(*S, D)`` (the previous frame's estimate): per camera, the ``delta`` such that
+        the projected capsules widened by ``delta`` cover as many pixels as the (``despeckle``-median
+        filtered) mask, i.e. ``#{pixels : d(p) <= delta} = area`` with ``d`` the signed distance to the
+        capsules' union: a quantile of ``d``. Matching areas, not outlines, keeps it blind to where the
+        body is (a pose error moves the model, not its area, up to self-occlusion), and to the pose
+        itself. Clamped to ``[-limit, limit]``; 0 for an empty or invalid mask.
+
+        Returns:
+            ``(*S, V)`` offsets in the masks' dtype and device (:meth:`Silhouettes.with_offset` takes them).
+        """
+        obs = self.select(obs).despeckled(despeckle)
+        pose = torch.as_tensor(pose)
+        lead = tuple(obs.masks.shape[:-3])
+        S = math.prod(lead)
+        body = self.body(pose.reshape(S, 1, pose.shape[-1]).to(self.skeleton.lower))
+        H, W = obs.height, obs.width
+        caps = self._caps2d(body, S, H, W)  # (S, V, 1, C)
+        vv, uu = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
+        grid = torch.stack([uu, vv], -1).reshape(-1, 2).to(caps.pa)
+        d = distance_to_capsules(grid, caps, signed=True).squeeze(-2)  # (S, V, H W)
+        area = (obs.masks > 0.5).reshape(S, -1, H * W).sum(-1)  # (S, V)
+        ranked = d.sort(-1).values
+        k = area.clamp(1, H * W) - 1
+        delta = ranked.gather(-1, k.unsqueeze(-1)).squeeze(-1)
+        delta = torch.where(torch.isfinite(delta), delta, 0.0).clamp(-limit, limit)  # no model in view: 0
+        ok = (area > 0) & obs.valid.reshape(S, -1).to(area.device)
+        return torch.where(ok, delta, 0.0).reshape(*lead, -1).to(obs.masks)
 
     def _check_cameras(self, images: torch.Tensor, body: Body, event_dims: int = 3) -> int:
         """``images`` (..., V, *event) must have the likelihood's V cameras and leading dims that batch the
@@ -213,7 +253,9 @@ class SilhouetteLikelihood(ImageLikelihood):
 
     def _distances(self, body, obs: Silhouettes):
         S = self._check_cameras(obs.masks, body)
-        pts, w = self._model_points(self._caps2d(body, S, obs.height, obs.width))  # (S, V, N, P, 2)
+        pts, w = self._model_points(
+            self._caps2d(body, S, obs.height, obs.width, obs.offset)
+        )  # (S, V, N, P, 2)
         inside = _lookup(obs.blurred(self.blur), pts, self.interpolation)
         return _pose_major(1.0 - (w * inside).sum(-1) / w.sum(-1).clamp_min(1e-9))
 
@@ -260,7 +302,7 @@ class DualSilhouetteLikelihood(ImageLikelihood):
 
     def _distances(self, body, obs: Silhouettes):
         S = self._check_cameras(obs.masks, body)
-        caps = self._caps2d(body, S, obs.height, obs.width)  # (S, V, N, C)
+        caps = self._caps2d(body, S, obs.height, obs.width, obs.offset)  # (S, V, N, C)
         fg, ok = _foreground(obs, self.n_samples, S, caps.pa)
         cov = capsule_coverage(fg, caps, softness=self.softness)  # (S, V, N, n)
         # a camera without foreground samples (empty or invalid mask) contributes 0
@@ -337,7 +379,7 @@ class SilhouetteDistanceLikelihood(ImageLikelihood):
         """(B, V) ``E_l`` in squared pixels."""
         S = self._check_cameras(obs.masks, body)
         obs = obs.despeckled(self.despeckle)
-        caps = self._caps2d(body, S, obs.height, obs.width)  # (S, V, N, C)
+        caps = self._caps2d(body, S, obs.height, obs.width, obs.offset)  # (S, V, N, C)
         pts, w = sample_in_capsules(caps, self.n_body, self.n_cap)  # (S, V, N, P, 2)
         d_in = _distance_lookup(obs.outside_distance(), pts).clamp_max(self.tau)
         model_term = (w * d_in * d_in).sum(-1) / w.sum(-1).clamp_min(1e-9)
@@ -408,7 +450,9 @@ class OverlapLikelihood(SilhouetteLikelihood):
 
     def _ratios(self, body, obs: Silhouettes):
         S = self._check_cameras(obs.masks, body)
-        pts, w = self._model_points(self._caps2d(body, S, obs.height, obs.width))  # (S, V, N, P, 2)
+        pts, w = self._model_points(
+            self._caps2d(body, S, obs.height, obs.width, obs.offset)
+        )  # (S, V, N, P, 2)
         inter = (w * _lookup(obs.blurred(self.blur), pts, self.interpolation)).sum(-1)
         union = w.sum(-1) + _per_camera(obs.area().to(w), S, 0) - inter
         return _pose_major(inter / union.clamp_min(1e-9))
