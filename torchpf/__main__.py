@@ -95,6 +95,12 @@ def _parser() -> argparse.ArgumentParser:
         "body is fitted to frame 0's masks first, its URDF written next to --out)",
     )
     tr.add_argument("--no-recovery", action="store_true", help="do not re-acquire a lost track")
+    tr.add_argument(
+        "--boundary-offset",
+        action="store_true",
+        help="measure per camera and frame how far the masks' outline lies outside the body's (a "
+        "segmentation that fattens or thins the person) and widen or thin the model by it",
+    )
     tr.add_argument("--device", help="cpu or cuda")
     tr.add_argument("--seed", type=int, default=0)
     tr.add_argument("--no-progress", action="store_true")
@@ -317,6 +323,7 @@ def _track(args) -> int:
         ("init_spread", args.init_spread),
         ("device", args.device),
         ("recovery", False if args.no_recovery else None),
+        ("boundary_offset", True if args.boundary_offset else None),
     ):
         if value is not None:
             kwargs[key] = value

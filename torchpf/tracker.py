@@ -244,6 +244,10 @@ class Tracker(nn.Module):
             the last estimate (:meth:`~torchpf.likelihoods.images.ImageLikelihood.boundary_offset`: a
             segmentation that fattens or thins the person per camera and frame) and let the silhouette cues
             widen or thin the projected capsules by it (:attr:`~torchpf.observations.Silhouettes.offset`).
+            Off by default: on foreign renders whose only defect is a random 1-px erosion or dilation per
+            camera and frame it took two clips from 97 / 110 to 61 / 59 mm, but on the full noisy preset
+            (3 clips x 2 seeds) it did not help (145 against 127 mm, within the run-to-run spread;
+            BENCHMARKS.md).
         device, dtype: where and in which precision to run (observations are moved per frame).
         progress: tqdm progress bar.
     """

@@ -131,6 +131,19 @@ def test_track_with_auto_temperature(seq_dir, tmp_path, capsys):
     assert values.shape[0] == 8 and torch.isfinite(torch.as_tensor(values)).all()
 
 
+def test_track_with_boundary_offset(seq_dir, tmp_path, monkeypatch):
+    import torchpf.tracker as tracker_module
+
+    seen = []
+    measure = tracker_module._with_outline_offset
+    monkeypatch.setattr(tracker_module, "_with_outline_offset", lambda *a: seen.append(1) or measure(*a))
+    out = tmp_path / "offset.csv"
+    args = ["track", str(seq_dir), "--skeleton", str(path("human.urdf")), "--out", str(out)]
+    assert main([*args, "--filter", "sir", "--particles", "60", "--boundary-offset", "--no-progress"]) == 0
+    assert len(seen) == 8  # measured before every frame
+    assert torch.isfinite(torch.as_tensor(read_mocap_csv(out)[1])).all()
+
+
 def test_track_reports_frames_without_evidence(seq_dir, tmp_path, capsys):
     import shutil
 

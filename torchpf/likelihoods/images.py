@@ -87,7 +87,11 @@ class ImageLikelihood(Likelihood):
         )
         if offset is not None:
             off = _per_camera(offset.to(ra), S, 0).unsqueeze(-1)  # (S, V, 1, 1)
-            ra, rb = (ra + off).clamp_min(0.5), (rb + off).clamp_min(0.5)
+            ra, rb = ra + off, rb + off
+            # an erosion wipes out what is thinner than it (a limb of half-width < |offset|): the mask cannot
+            # show such a capsule, so the cue must neither look for it nor pull it onto what is left
+            valid = valid & ((ra > 0.5) | (rb > 0.5))
+            ra, rb = ra.clamp_min(0.5), rb.clamp_min(0.5)
         return Capsules2D(pa, pb, ra, rb, valid)
 
     @torch.no_grad()
@@ -112,15 +116,30 @@ class ImageLikelihood(Likelihood):
         body = self.body(pose.reshape(S, 1, pose.shape[-1]).to(self.skeleton.lower))
         H, W = obs.height, obs.width
         caps = self._caps2d(body, S, H, W)  # (S, V, 1, C)
-        vv, uu = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
-        grid = torch.stack([uu, vv], -1).reshape(-1, 2).to(caps.pa)
-        d = distance_to_capsules(grid, caps, signed=True).squeeze(-2)  # (S, V, H W)
+        # only pixels within `limit` of the model can be its k-th nearest: those of each camera's box around
+        # the capsules (one box size for all, offset per camera); the rest count as beyond the limit
+        reach = torch.maximum(caps.ra, caps.rb).unsqueeze(-1) + limit + 1.0
+        ends = torch.stack([caps.pa, caps.pb], -2)  # (S, V, 1, C, 2, 2)
+        big = torch.where(caps.valid[..., None, None], ends, math.inf)
+        lo = (torch.minimum(big[..., 0, :], big[..., 1, :]) - reach).amin(-2).floor()  # (S, V, 1, 2)
+        small = torch.where(caps.valid[..., None, None], ends, -math.inf)
+        hi = (torch.maximum(small[..., 0, :], small[..., 1, :]) + reach).amax(-2).ceil()
+        seen = caps.valid.any(-1)  # (S, V, 1): some capsule in front of the camera
+        size = lo.new_tensor([W, H])
+        lo = torch.where(seen.unsqueeze(-1), lo.clamp(min=0).minimum(size - 1), 0.0)
+        hi = torch.where(seen.unsqueeze(-1), hi.minimum(size - 1).maximum(lo), 0.0)
+        bw, bh = (int(v) + 1 for v in (hi - lo).amax((0, 1, 2)).tolist())
+        vv, uu = torch.meshgrid(torch.arange(bh), torch.arange(bw), indexing="ij")
+        grid = lo.unsqueeze(-2) + torch.stack([uu, vv], -1).reshape(-1, 2).to(lo)  # (S, V, 1, P, 2)
+        d = distance_to_capsules(grid, caps, signed=True)
+        in_image = ((grid >= 0) & (grid <= size - 1)).all(-1)
+        d = torch.where(in_image & torch.isfinite(d), d, 2.0 * limit + 1.0).squeeze(-2)  # (S, V, P)
         area = (obs.masks > 0.5).reshape(S, -1, H * W).sum(-1)  # (S, V)
         ranked = d.sort(-1).values
-        k = area.clamp(1, H * W) - 1
+        k = area.clamp(1, d.shape[-1]) - 1
         delta = ranked.gather(-1, k.unsqueeze(-1)).squeeze(-1)
-        delta = torch.where(torch.isfinite(delta), delta, 0.0).clamp(-limit, limit)  # no model in view: 0
-        ok = (area > 0) & obs.valid.reshape(S, -1).to(area.device)
+        delta = torch.where(area > d.shape[-1], limit, delta).clamp(-limit, limit)
+        ok = (area > 0) & obs.valid.reshape(S, -1).to(area.device) & seen.squeeze(-1)
         return torch.where(ok, delta, 0.0).reshape(*lead, -1).to(obs.masks)
 
     def _check_cameras(self, images: torch.Tensor, body: Body, event_dims: int = 3) -> int:
