@@ -106,7 +106,7 @@ def run_one(
     )  # fmt: skip
     result = tracker.track(str(seq.path), seed=seed)
     truth = skel.fk(seq.angles.to(torch.float64))
-    est = skel.fk(result.angles)
+    est = (result.skeleton or skel).fk(result.angles)  # the body track fitted to frame 0, if it did
     out = {
         "mpjpe_mm": 1000 * float(metrics.mpjpe(truth, est)),
         "failure": float(metrics.failure_rate(truth, est)),
