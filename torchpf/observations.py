@@ -146,8 +146,8 @@ class Silhouettes:
             segmentation that dilates the person, > 0, or erodes it, < 0, e.g. a threshold or exposure
             that differs per camera and frame). The silhouette cues widen (or thin) the projected capsules
             by it, so that a fattened or thinned mask is not explained by a wrong pose. ``None``: 0.
-            :func:`~torchpf.likelihoods.boundary.estimate_boundary_offset` measures it (what ``Tracker``
-            does each frame).
+            :meth:`~torchpf.likelihoods.images.ImageLikelihood.boundary_offset` measures it (what
+            ``Tracker(boundary_offset=True)`` does each frame).
 
     Derived (cached): :meth:`blurred` soft masks for smooth look-ups, :meth:`foreground_samples` fixed
     stratified points on the foreground (dual silhouette cue), :meth:`area` foreground pixel counts.

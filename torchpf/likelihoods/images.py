@@ -79,7 +79,8 @@ class ImageLikelihood(Likelihood):
         B = S N poses of ``S`` sequences (S = 1: one observation for all). In this layout one ``grid_sample``
         of the (S, V, H, W) images, or one matrix product per camera, serves every camera
         (:func:`_sample`, :func:`~torchpf.geometry.capsule_coverage`). ``offset``: the masks' outline offset
-        ``(*S, V)`` pixels (:attr:`Silhouettes.offset`) added to every projected radius (kept >= 0.5 px)."""
+        ``(*S, V)`` pixels (:attr:`Silhouettes.offset`) added to every projected radius (kept >= 0.5 px); a
+        capsule whose radii both fall to 0.5 px or less is marked invalid in that camera."""
         a, b, r = body.capsules(self.bones)
         caps = project_capsules(self.cameras.resized(width, height), a, b, r)  # (B, V, C)
         pa, pb, ra, rb, valid = (
