@@ -419,8 +419,11 @@ class PersonDetector:
                 rest,
             ]
         )
-        free = torch.ones(len(self.zero), dtype=torch.bool)
-        free[self.trans + self.rot] = False
+        # only the DOFs that swing a limb about its pivot are solved for: with the girdle (clavicle, hip
+        # joint) and spine free too, IK found far-off solutions that meet the targets with a twisted girdle
+        owner = torch.as_tensor(self.skeleton.dof_joints)
+        swung = torch.tensor(sorted({j for limb in self.limbs for j in [limb.pivot, *limb.moved]}))
+        free = torch.isin(owner, swung)
         return project(self.skeleton, targets, self.zero.expand(len(targets), -1), free=free, iters=60)
 
     def _heading_dofs(self, rest: Tensor) -> Tensor:

@@ -78,6 +78,19 @@ def test_limbs_forward_and_headings_from_structure(case, detector):
     assert float(standing[names.index("LeftHand"), 2]) < float(standing[0, 2])
 
 
+def test_postures_swing_limbs_about_their_pivots_only(detector):
+    """Every canonical posture leaves the torso and each limb's girdle (clavicle, hip joint) at rest: only
+    the pivot and the joints below it move (IK with the girdle free twisted a clavicle by 3.6 rad on the
+    stride posture, putting one shoulder 20 cm off)."""
+    skel = detector.skeleton
+    with torch.no_grad():
+        poses = skel.fk(detector.postures)
+    moved = {j for limb in detector.limbs for j in limb.moved}
+    still = [j for j in range(len(skel.parents)) if j not in moved]
+    assert torch.allclose(poses[:, still], detector.rest[still].expand(len(poses), -1, -1), atol=1e-6)
+    assert (poses[1:3] - detector.rest).norm(dim=-1).max() > 0.1  # the strides do move the limbs
+
+
 def test_auto_init_finds_the_pose(case):
     from benchmarks.auto_init import run_auto
 
