@@ -310,6 +310,7 @@ class PersonDetector:
             eye = torch.eye(D, dtype=torch.float64)[self.trans]
             self._trans_axes = (skeleton.fk(self.zero + eye)[:, self.root] - rest[self.root]).T  # (3, P)
         self.limbs = self._limbs(parents, rest)
+        self.groups = body_partition(skeleton, per_limb=True)  # DOF indices: torso with the root, each limb
         self.lateral = self._lateral(rest)
         self.forward = self._forward(rest)
         self.postures = self._postures(rest)
@@ -587,6 +588,7 @@ class PersonDetector:
         strata: bool = True,
         device: torch.device | str | None = None,
         dtype: torch.dtype = torch.float32,
+        posture: Tensor | None = None,
     ) -> tuple[Tensor, Tensor]:
         """Global search of one frame: score every heading x posture (:meth:`candidates`, plus ``start``
         particles if given), then ``iterations`` rounds of partitioned annealing: for the torso (with the
@@ -606,6 +608,10 @@ class PersonDetector:
             strata: search each heading x stride stratum apart and keep the best (else one population
                 from every candidate and ``start``).
             device, dtype: where and in which precision the likelihood runs (the tracker's).
+            posture: (D,) pose whose limb DOFs centre the weak posture prior of the search (N(posture,
+                ``posture_sigma``^2) per limb DOF); default the canonical standing posture. A recovering
+                track passes its last good estimate: a run's bent elbows, hidden in the silhouette of the
+                torso at low resolution, are kept instead of being pulled straight.
 
         Returns:
             ``(particles (n, D), log_likelihood (n,))`` in the likelihood's device and float dtype of
@@ -644,13 +650,27 @@ class PersonDetector:
                 headings,
                 device,
                 dtype,
+                posture,
             )
             if best is None or float(ll.max()) > float(best[1].max()):
                 best = (x, ll)
         return best
 
     def _anneal(
-        self, x, likelihood, obs, det, n, iterations, scale, survival_rate, generator, headings, device, dtype
+        self,
+        x,
+        likelihood,
+        obs,
+        det,
+        n,
+        iterations,
+        scale,
+        survival_rate,
+        generator,
+        headings,
+        device,
+        dtype,
+        posture=None,
     ) -> tuple[Tensor, Tensor]:
         if len(x) < n:
             x = torch.cat([x, self.propose(det, n - len(x), generator, std=scale, headings=headings)])
@@ -659,20 +679,27 @@ class PersonDetector:
         limbs = torch.ones(len(self.zero), dtype=torch.bool)
         limbs[self.trans + self.rot] = False
         limbs &= scale > 0
-        standing = self.postures[0]
+        # a weak prior keeps a thin model from folding its limbs inside the silhouette: each body part
+        # (torso, each limb) near standing, or, given ``posture``, near either (a per-part mixture: a run's
+        # bent elbows are kept from the last good pose while the legs are free to take the other stride)
+        centres = self.postures[:1] if posture is None else torch.stack([self.postures[0], posture.cpu()])
+        centres = centres.to(x.dtype)[:, limbs]  # (K, L)
+        parts = torch.zeros(len(self.zero), len(self.groups), dtype=x.dtype)
+        for g, group in enumerate(self.groups):
+            parts[group, g] = 1.0
+        parts = parts[limbs]  # (L, G)
 
         def score(x):
-            # a weak prior around standing keeps a thin model from folding its limbs inside the silhouette
-            off = wrap_angle(x[:, limbs] - standing[limbs]) / self.posture_sigma
+            off = wrap_angle(x[:, None, limbs] - centres) / self.posture_sigma  # (N, K, L)
+            per_part = -0.5 * off.square() @ parts  # (N, K, G)
+            prior = (torch.logsumexp(per_part, 1) - math.log(len(centres))).sum(-1)
             with torch.no_grad():
-                return likelihood(
-                    x.to(device=device, dtype=dtype), obs
-                ).double().cpu() - 0.5 * off.square().sum(-1)
+                return likelihood(x.to(device=device, dtype=dtype), obs).double().cpu() + prior
 
         ll = score(x)
         # partitioned annealing (MacCormick & Isard; Fontmarty Table 2): the torso with the root first,
         # then one limb at a time, so each round searches a few DOFs instead of all of them
-        groups = body_partition(self.skeleton, per_limb=True)
+        groups = self.groups
         for k in range(iterations):
             shrink = 3.0 * (0.5 / 3.0) ** (k / max(1, iterations - 1))
             for group in groups:
@@ -706,12 +733,14 @@ class Recovery:
       is checked when the log-likelihood of the estimate collapses (below the running median of the last
       ``window`` good frames by more than ``max(4 x 1.48 MAD, collapse x |median|)``), on every frame after
       a lost one, and every ``check_every`` frames.
-    * **re-acquire**: the particles are moved so their roots sit over the hull (keeping their postures
-      and headings) and, with fresh detector candidates (every heading x posture at the hull), refined by
-      :meth:`PersonDetector.search` (``iterations`` rounds of partitioned annealing, about
-      ``iterations x (limbs + 1)`` frames' worth of likelihood evaluations); the result, weighted by its
-      likelihood, replaces the filter's particles (a re-initialisation, not an importance-corrected
-      weight: a lost track has no prior worth keeping).
+    * **re-acquire**: the particles and the last good estimate are moved so their roots sit over the hull
+      (keeping their postures and headings) and, with fresh detector candidates (every heading x posture
+      at the hull; front or back chosen by the way the person moved since the last good frame, as for
+      ``init="auto"``: :meth:`PersonDetector.heading_choices`), refined by :meth:`PersonDetector.search`
+      (``iterations`` rounds of partitioned annealing, about ``iterations x (limbs + 1)`` frames' worth of
+      likelihood evaluations; its posture prior is a per-part mixture of standing and the last good
+      estimate); the result, weighted by its likelihood, replaces the filter's particles (a
+      re-initialisation, not an importance-corrected weight: a lost track has no prior worth keeping).
 
     After a run, ``lost`` and ``recovered`` (lists of frame flags; recovered: the first good frame after a
     lost run, where the re-acquired track is accepted) describe what happened.
@@ -731,8 +760,10 @@ class Recovery:
         iterations: int = 2,
         init_extras=None,
         dtype: torch.dtype = torch.float32,
+        fps: float = 30.0,
     ):
         self.detector = detector
+        self.fps = float(fps)
         self.init_extras = init_extras
         self.likelihood = likelihood
         self.std = std
@@ -744,14 +775,21 @@ class Recovery:
         self._areas: list[float] = []
         self._lls: list[float] = []
         self._gap = False
+        self._last_good: Tensor | None = None  # (D,) the estimate of the last good frame, and its index
+        self._last_t = 0
+
+    @staticmethod
+    def _estimate(state) -> Tensor:
+        """The frame's estimate (D,): the filter's own where it reports one (the hybrid's refined pose)."""
+        return state.info["estimate"] if "estimate" in state.info else state.mean()
 
     def _estimate_ll(self, state, obs) -> float:
         with torch.no_grad():
-            return float(self.likelihood(state.mean()[None], obs)[0])
+            return float(self.likelihood(self._estimate(state)[None], obs)[0])
 
     def _root_distance(self, state, det: Detection) -> float:
         with torch.no_grad():
-            root = self.detector.skeleton.fk(state.mean().double().cpu())[self.detector.root]
+            root = self.detector.skeleton.fk(self._estimate(state).double().cpu())[self.detector.root]
         return float((root[:2] - det.centre[:2]).norm())
 
     def __call__(self, state, obs, generator=None):
@@ -787,14 +825,28 @@ class Recovery:
             else:
                 recovered = was_lost
                 self._lls.append(ll)
+                if not suspicious:
+                    self._last_good = self._estimate(state).detach().double().cpu()
+                    self._last_t = t
         self.lost.append(lost)
         self.recovered.append(recovered)
         return state
+
+    def _motion(self, det: Detection) -> Tensor | None:
+        """(2,) horizontal velocity (m/s) from the last good estimate's root to the hull, or None."""
+        if self._last_good is None:
+            return None
+        with torch.no_grad():
+            root = self.detector.skeleton.fk(self._last_good)[self.detector.root]
+        frames = max(1, len(self.lost) - self._last_t)
+        return (det.centre[:2] - root[:2]) * self.fps / frames
 
     def _reacquire(self, state, obs, det: Detection, generator):
         x = state.particles
         n = x.shape[-2]
         own = x.reshape(-1, x.shape[-1]).double().cpu()
+        if self._last_good is not None:
+            own = torch.cat([own, self._last_good[None]])
         own = self.detector.place(own, self.detector.root_target(det)[None].expand(len(own), -1))
         g = torch.Generator().manual_seed(
             int(torch.randint(2**31 - 1, (1,), generator=generator, device=x.device))
@@ -808,12 +860,19 @@ class Recovery:
             start=own,
             generator=g,
             det=det,
+            motion=self._motion(det),
             strata=False,
             device=x.device,
             dtype=self.dtype,
+            posture=self._last_good,
         )
         new = new.to(x)
         log_w = (ll - torch.logsumexp(ll, -1)).to(state.log_weights)
         new = new.reshape(x.shape)
         extras = dict(self.init_extras(new)) if self.init_extras is not None else dict(state.extras)
-        return state.replace(particles=new, log_weights=log_w.reshape(state.log_weights.shape), extras=extras)
+        # a filter that reports its own estimate (the hybrid's refined one, ``info["estimate"]``) made it from
+        # the lost particles: the frame's estimate is the re-acquired set's mean instead
+        info = {k: v for k, v in state.info.items() if k != "estimate"}
+        return state.replace(
+            particles=new, log_weights=log_w.reshape(state.log_weights.shape), extras=extras, info=info
+        )
