@@ -269,6 +269,8 @@ class _Limb:
     moved: list[int]  # joints below the pivot
     extremity: int  # farthest joint of the main chain
     leg: bool
+    bend: int | None = None  # the main chain's middle joint (knee, elbow), None for a short limb
+    lower: list[int] | None = None  # joints below ``bend``
 
 
 class PersonDetector:
@@ -315,7 +317,9 @@ class PersonDetector:
         self.forward = self._forward(rest)
         self.postures = self._postures(rest)
         # searched apart (:meth:`search`): standing / arms half down / rest, then each stride
-        self.posture_strata = [[0, 3, 4], [1], [2]]
+        self.posture_strata = [[0, 3, 4], [1], [2]] + [[k] for k in range(5, len(self.postures))]
+        # fitted by :meth:`fit`: standing and every stride (walking and running)
+        self.fit_postures = [0, 1, 2, *range(5, len(self.postures))]
         self.headings = torch.arange(headings, dtype=torch.float64) * (2 * math.pi / headings)
         self.heading_dofs = self._heading_dofs(rest)
 
@@ -343,7 +347,9 @@ class PersonDetector:
             pivot = firsts[0] if len(firsts) >= 3 else start
             moved = [k for k in subtree(pivot) if k != pivot]
             leg = float(rest[joints, 2].min()) < root_z - 0.25 * self.stature
-            out.append(_Limb(joints, pivot, moved, chain[-1], leg))
+            bend = firsts[1] if len(firsts) >= 3 else None
+            lower = [k for k in subtree(bend) if k != bend] if bend is not None else None
+            out.append(_Limb(joints, pivot, moved, chain[-1], leg, bend, lower))
         return out
 
     def _lateral(self, rest: Tensor) -> Tensor:
@@ -370,7 +376,8 @@ class PersonDetector:
     def _postures(self, rest: Tensor) -> Tensor:
         """(P, D) canonical postures by IK from the rest pose (root DOFs at rest): arms down; arms down with
         a stride either way (legs +-20 deg about the hip axis, arms swinging against them); arms half down;
-        the rest pose itself."""
+        the rest pose itself; and, when the feet give a forward direction, a running stride either way
+        (legs +-30 deg, the back knee flexed 70 deg and the front one 20, elbows flexed 80 deg forwards)."""
         from torchpf.ik import project
 
         lateral = self.lateral
@@ -381,7 +388,22 @@ class PersonDetector:
             points[limb.moved] = (points[limb.moved] - p) @ R.T + p
             return points
 
-        def posture(arm_drop: float, stride: float) -> Tensor:
+        def flexed(points: Tensor, limb: _Limb, angle: float, backwards: bool) -> Tensor:
+            # the limb's lower segment turned about the hip axis at its middle joint, its end moving
+            # backwards (a knee) or forwards (an elbow) along the feet's direction
+            if not angle or limb.bend is None or not limb.lower or self.forward is None:
+                return points
+            p = points[limb.bend]
+            best = None
+            for a in (angle, -angle):
+                moved = (points[limb.lower] - p) @ _axis_angle(lateral, a).T + p
+                ahead = float((moved[-1] - points[limb.lower][-1]) @ self.forward)
+                if best is None or (ahead < best[0] if backwards else ahead > best[0]):
+                    best = (ahead, moved)
+            points[limb.lower] = best[1]
+            return points
+
+        def posture(arm_drop: float, stride: float, knees: tuple = (0.0, 0.0), elbows: float = 0.0) -> Tensor:
             pts = rest.clone()
             sign, legs_seen = 1.0, 0
             for limb in self.limbs:
@@ -393,6 +415,9 @@ class PersonDetector:
                     splay = (a @ lateral) * lateral + a[2] * down.abs()
                     close = _rotation_between(splay / splay.norm(), down)
                     pts = rotated(pts, limb, _axis_angle(lateral, s * stride) @ close)
+                    if self.forward is not None and any(knees):
+                        back = float((pts[limb.extremity] - pts[limb.pivot]) @ self.forward) < 0
+                        pts = flexed(pts, limb, knees[0] if back else knees[1], backwards=True)
                     continue
                 a = rest[limb.extremity] - rest[limb.pivot]
                 if float(a.norm()) < 1e-6:
@@ -407,7 +432,7 @@ class PersonDetector:
                 R = _rotation_between(a, target)
                 side = float((rest[limb.pivot] - rest[self.root]) @ lateral)
                 R = _axis_angle(lateral, -0.75 * stride * math.copysign(1.0, side)) @ R
-                pts = rotated(pts, limb, R)
+                pts = flexed(rotated(pts, limb, R), limb, elbows, backwards=False)
             return pts
 
         hang = math.radians(80.0)
@@ -418,6 +443,12 @@ class PersonDetector:
                 posture(hang, -math.radians(20.0)),
                 posture(math.radians(45.0), 0.0),
                 rest,
+            ]
+            + [
+                posture(
+                    hang, s * math.radians(30.0), (math.radians(70.0), math.radians(20.0)), math.radians(80)
+                )
+                for s in ((1.0, -1.0) if self.forward is not None else ())
             ]
         )
         # only the DOFs that swing a limb about its pivot are solved for: with the girdle (clavicle, hip
@@ -556,7 +587,8 @@ class PersonDetector:
         if det is None:
             raise ValueError("no person found in the silhouettes (fewer than two cameras see one)")
         headings = [h for group in self.heading_choices(det, motion) for h in group[len(group) // 2 :][:1]]
-        cand = self.candidates(det, headings).reshape(len(headings), len(self.postures), -1)[:, :3]
+        cand = self.candidates(det, headings).reshape(len(headings), len(self.postures), -1)
+        cand = cand[:, self.fit_postures]
         cand = cand.reshape(-1, cand.shape[-1])
 
         def run(pose, steps):
