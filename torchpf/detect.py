@@ -10,20 +10,22 @@ bottom-up detector mixed into the proposal, as I-CONDENSATION does):
   person's horizontal centre (the median of the torso slice), the floor (its lowest voxels) and the
   stature (its vertical extent).
 * **How** (:class:`PersonDetector`): candidate poses are built from the skeleton's *structure* and rest pose,
-  never from joint names: a few canonical postures (standing with the arms down, two strides, arms half
-  down, the rest pose), made by inverse kinematics from the rest pose with limbs found by
-  :func:`~torchpf.kinematics.body_partition` (a limb reaching far below the root is a leg, the others are
-  arms; a limb rotates about the joint that ends its girdle segment); a grid of headings about the vertical
+  never from joint names: a few canonical postures (standing with the arms down, two walking strides, arms
+  half down, the rest pose, two running strides with bent knee and elbows), made by inverse kinematics from
+  the rest pose with limbs found by :func:`~torchpf.kinematics.body_partition` (a limb reaching far below
+  the root is a leg, the others are arms; a limb rotates about the joint that ends its girdle segment, which
+  stays at rest, and bends at its middle joint); a grid of headings about the vertical
   (root DOFs solved by IK, so any Euler order works); the root placed at the hull's centre, its height the
   floor plus the rest pose's root height.
 * **Which heading**: the torso slice's principal axis gives the shoulder line up to its sign; the hull's
   motion over the first frames picks the sign whose feet point forwards
   (:meth:`~PersonDetector.heading_choices`).
-* **Initial pose** (:meth:`PersonDetector.fit`): each kept heading x {standing, either stride} is refined
+* **Initial pose** (:meth:`PersonDetector.fit`): each kept heading x {standing, each stride} is refined
   by :func:`torchpf.calibrate.fit_body` on frame 0 (a soft area match: it tells the strides apart where a
   thin model's likelihood does not), and the lowest silhouette loss wins; the fitted body comes with it.
-* **Re-acquisition** (:meth:`PersonDetector.search`, :class:`Recovery`): the candidates and the lost
-  track's own particles moved over the hull are scored by the tracker's likelihood and refined by
+* **Re-acquisition** (:meth:`PersonDetector.search`, :class:`Recovery`): the candidates, the lost
+  track's own particles and its last good estimate moved over the hull are scored by the tracker's
+  likelihood (with a weak prior: each body part near standing or near that estimate) and refined by
   partitioned annealing (Deutscher's adaptive annealing, survival rate 0.3; torso then each limb: resample,
   diffuse with shrinking noise); the population replaces the filter's particles.
 * **Body**: :func:`looks_uncalibrated` tells a stick-figure body (a converted skeleton's ``0.15 x`` length
@@ -573,7 +575,7 @@ class PersonDetector:
         keep: int = 2,
     ):
         """Pose (and body) from one frame's masks alone: the central heading of each stratum of
-        :meth:`heading_choices` x {standing, either stride} is refined by
+        :meth:`heading_choices` x {standing, each walking and running stride} is refined by
         :func:`torchpf.calibrate.fit_body` for ``quick`` steps, the ``keep`` lowest final silhouette
         losses for ``iterations`` steps, and the best of those is returned. The fit's objective penalises
         both a model outside the mask and mask left uncovered (a soft-rasterised area match), which tells
