@@ -10,20 +10,22 @@ bottom-up detector mixed into the proposal, as I-CONDENSATION does):
   person's horizontal centre (the median of the torso slice), the floor (its lowest voxels) and the
   stature (its vertical extent).
 * **How** (:class:`PersonDetector`): candidate poses are built from the skeleton's *structure* and rest pose,
-  never from joint names: a few canonical postures (standing with the arms down, two strides, arms half
-  down, the rest pose), made by inverse kinematics from the rest pose with limbs found by
-  :func:`~torchpf.kinematics.body_partition` (a limb reaching far below the root is a leg, the others are
-  arms; a limb rotates about the joint that ends its girdle segment); a grid of headings about the vertical
+  never from joint names: a few canonical postures (standing with the arms down, two walking strides, arms
+  half down, the rest pose, two running strides with bent knee and elbows), made by inverse kinematics from
+  the rest pose with limbs found by :func:`~torchpf.kinematics.body_partition` (a limb reaching far below
+  the root is a leg, the others are arms; a limb rotates about the joint that ends its girdle segment, which
+  stays at rest, and bends at its middle joint); a grid of headings about the vertical
   (root DOFs solved by IK, so any Euler order works); the root placed at the hull's centre, its height the
   floor plus the rest pose's root height.
 * **Which heading**: the torso slice's principal axis gives the shoulder line up to its sign; the hull's
   motion over the first frames picks the sign whose feet point forwards
   (:meth:`~PersonDetector.heading_choices`).
-* **Initial pose** (:meth:`PersonDetector.fit`): each kept heading x {standing, either stride} is refined
+* **Initial pose** (:meth:`PersonDetector.fit`): each kept heading x {standing, each stride} is refined
   by :func:`torchpf.calibrate.fit_body` on frame 0 (a soft area match: it tells the strides apart where a
   thin model's likelihood does not), and the lowest silhouette loss wins; the fitted body comes with it.
-* **Re-acquisition** (:meth:`PersonDetector.search`, :class:`Recovery`): the candidates and the lost
-  track's own particles moved over the hull are scored by the tracker's likelihood and refined by
+* **Re-acquisition** (:meth:`PersonDetector.search`, :class:`Recovery`): the candidates, the lost
+  track's own particles and its last good estimate moved over the hull are scored by the tracker's
+  likelihood (with a weak prior: each body part near standing or near that estimate) and refined by
   partitioned annealing (Deutscher's adaptive annealing, survival rate 0.3; torso then each limb: resample,
   diffuse with shrinking noise); the population replaces the filter's particles.
 * **Body**: :func:`looks_uncalibrated` tells a stick-figure body (a converted skeleton's ``0.15 x`` length
@@ -269,6 +271,8 @@ class _Limb:
     moved: list[int]  # joints below the pivot
     extremity: int  # farthest joint of the main chain
     leg: bool
+    bend: int | None = None  # the main chain's middle joint (knee, elbow), None for a short limb
+    lower: list[int] | None = None  # joints below ``bend``
 
 
 class PersonDetector:
@@ -310,11 +314,14 @@ class PersonDetector:
             eye = torch.eye(D, dtype=torch.float64)[self.trans]
             self._trans_axes = (skeleton.fk(self.zero + eye)[:, self.root] - rest[self.root]).T  # (3, P)
         self.limbs = self._limbs(parents, rest)
+        self.groups = body_partition(skeleton, per_limb=True)  # DOF indices: torso with the root, each limb
         self.lateral = self._lateral(rest)
         self.forward = self._forward(rest)
         self.postures = self._postures(rest)
         # searched apart (:meth:`search`): standing / arms half down / rest, then each stride
-        self.posture_strata = [[0, 3, 4], [1], [2]]
+        self.posture_strata = [[0, 3, 4], [1], [2]] + [[k] for k in range(5, len(self.postures))]
+        # fitted by :meth:`fit`: standing and every stride (walking and running)
+        self.fit_postures = [0, 1, 2, *range(5, len(self.postures))]
         self.headings = torch.arange(headings, dtype=torch.float64) * (2 * math.pi / headings)
         self.heading_dofs = self._heading_dofs(rest)
 
@@ -342,7 +349,9 @@ class PersonDetector:
             pivot = firsts[0] if len(firsts) >= 3 else start
             moved = [k for k in subtree(pivot) if k != pivot]
             leg = float(rest[joints, 2].min()) < root_z - 0.25 * self.stature
-            out.append(_Limb(joints, pivot, moved, chain[-1], leg))
+            bend = firsts[1] if len(firsts) >= 3 else None
+            lower = [k for k in subtree(bend) if k != bend] if bend is not None else None
+            out.append(_Limb(joints, pivot, moved, chain[-1], leg, bend, lower))
         return out
 
     def _lateral(self, rest: Tensor) -> Tensor:
@@ -369,7 +378,8 @@ class PersonDetector:
     def _postures(self, rest: Tensor) -> Tensor:
         """(P, D) canonical postures by IK from the rest pose (root DOFs at rest): arms down; arms down with
         a stride either way (legs +-20 deg about the hip axis, arms swinging against them); arms half down;
-        the rest pose itself."""
+        the rest pose itself; and, when the feet give a forward direction, a running stride either way
+        (legs +-30 deg, the back knee flexed 70 deg and the front one 20, elbows flexed 80 deg forwards)."""
         from torchpf.ik import project
 
         lateral = self.lateral
@@ -380,7 +390,22 @@ class PersonDetector:
             points[limb.moved] = (points[limb.moved] - p) @ R.T + p
             return points
 
-        def posture(arm_drop: float, stride: float) -> Tensor:
+        def flexed(points: Tensor, limb: _Limb, angle: float, backwards: bool) -> Tensor:
+            # the limb's lower segment turned about the hip axis at its middle joint, its end moving
+            # backwards (a knee) or forwards (an elbow) along the feet's direction
+            if not angle or limb.bend is None or not limb.lower or self.forward is None:
+                return points
+            p = points[limb.bend]
+            best = None
+            for a in (angle, -angle):
+                moved = (points[limb.lower] - p) @ _axis_angle(lateral, a).T + p
+                ahead = float((moved[-1] - points[limb.lower][-1]) @ self.forward)
+                if best is None or (ahead < best[0] if backwards else ahead > best[0]):
+                    best = (ahead, moved)
+            points[limb.lower] = best[1]
+            return points
+
+        def posture(arm_drop: float, stride: float, knees: tuple = (0.0, 0.0), elbows: float = 0.0) -> Tensor:
             pts = rest.clone()
             sign, legs_seen = 1.0, 0
             for limb in self.limbs:
@@ -392,6 +417,9 @@ class PersonDetector:
                     splay = (a @ lateral) * lateral + a[2] * down.abs()
                     close = _rotation_between(splay / splay.norm(), down)
                     pts = rotated(pts, limb, _axis_angle(lateral, s * stride) @ close)
+                    if self.forward is not None and any(knees):
+                        back = float((pts[limb.extremity] - pts[limb.pivot]) @ self.forward) < 0
+                        pts = flexed(pts, limb, knees[0] if back else knees[1], backwards=True)
                     continue
                 a = rest[limb.extremity] - rest[limb.pivot]
                 if float(a.norm()) < 1e-6:
@@ -406,7 +434,7 @@ class PersonDetector:
                 R = _rotation_between(a, target)
                 side = float((rest[limb.pivot] - rest[self.root]) @ lateral)
                 R = _axis_angle(lateral, -0.75 * stride * math.copysign(1.0, side)) @ R
-                pts = rotated(pts, limb, R)
+                pts = flexed(rotated(pts, limb, R), limb, elbows, backwards=False)
             return pts
 
         hang = math.radians(80.0)
@@ -418,9 +446,18 @@ class PersonDetector:
                 posture(math.radians(45.0), 0.0),
                 rest,
             ]
+            + [
+                posture(
+                    hang, s * math.radians(30.0), (math.radians(70.0), math.radians(20.0)), math.radians(80)
+                )
+                for s in ((1.0, -1.0) if self.forward is not None else ())
+            ]
         )
-        free = torch.ones(len(self.zero), dtype=torch.bool)
-        free[self.trans + self.rot] = False
+        # only the DOFs that swing a limb about its pivot are solved for: with the girdle (clavicle, hip
+        # joint) and spine free too, IK found far-off solutions that meet the targets with a twisted girdle
+        owner = torch.as_tensor(self.skeleton.dof_joints)
+        swung = torch.tensor(sorted({j for limb in self.limbs for j in [limb.pivot, *limb.moved]}))
+        free = torch.isin(owner, swung)
         return project(self.skeleton, targets, self.zero.expand(len(targets), -1), free=free, iters=60)
 
     def _heading_dofs(self, rest: Tensor) -> Tensor:
@@ -538,7 +575,7 @@ class PersonDetector:
         keep: int = 2,
     ):
         """Pose (and body) from one frame's masks alone: the central heading of each stratum of
-        :meth:`heading_choices` x {standing, either stride} is refined by
+        :meth:`heading_choices` x {standing, each walking and running stride} is refined by
         :func:`torchpf.calibrate.fit_body` for ``quick`` steps, the ``keep`` lowest final silhouette
         losses for ``iterations`` steps, and the best of those is returned. The fit's objective penalises
         both a model outside the mask and mask left uncovered (a soft-rasterised area match), which tells
@@ -552,7 +589,8 @@ class PersonDetector:
         if det is None:
             raise ValueError("no person found in the silhouettes (fewer than two cameras see one)")
         headings = [h for group in self.heading_choices(det, motion) for h in group[len(group) // 2 :][:1]]
-        cand = self.candidates(det, headings).reshape(len(headings), len(self.postures), -1)[:, :3]
+        cand = self.candidates(det, headings).reshape(len(headings), len(self.postures), -1)
+        cand = cand[:, self.fit_postures]
         cand = cand.reshape(-1, cand.shape[-1])
 
         def run(pose, steps):
@@ -584,6 +622,7 @@ class PersonDetector:
         strata: bool = True,
         device: torch.device | str | None = None,
         dtype: torch.dtype = torch.float32,
+        posture: Tensor | None = None,
     ) -> tuple[Tensor, Tensor]:
         """Global search of one frame: score every heading x posture (:meth:`candidates`, plus ``start``
         particles if given), then ``iterations`` rounds of partitioned annealing: for the torso (with the
@@ -603,6 +642,10 @@ class PersonDetector:
             strata: search each heading x stride stratum apart and keep the best (else one population
                 from every candidate and ``start``).
             device, dtype: where and in which precision the likelihood runs (the tracker's).
+            posture: (D,) pose whose limb DOFs centre the weak posture prior of the search (N(posture,
+                ``posture_sigma``^2) per limb DOF); default the canonical standing posture. A recovering
+                track passes its last good estimate: a run's bent elbows, hidden in the silhouette of the
+                torso at low resolution, are kept instead of being pulled straight.
 
         Returns:
             ``(particles (n, D), log_likelihood (n,))`` in the likelihood's device and float dtype of
@@ -641,13 +684,27 @@ class PersonDetector:
                 headings,
                 device,
                 dtype,
+                posture,
             )
             if best is None or float(ll.max()) > float(best[1].max()):
                 best = (x, ll)
         return best
 
     def _anneal(
-        self, x, likelihood, obs, det, n, iterations, scale, survival_rate, generator, headings, device, dtype
+        self,
+        x,
+        likelihood,
+        obs,
+        det,
+        n,
+        iterations,
+        scale,
+        survival_rate,
+        generator,
+        headings,
+        device,
+        dtype,
+        posture=None,
     ) -> tuple[Tensor, Tensor]:
         if len(x) < n:
             x = torch.cat([x, self.propose(det, n - len(x), generator, std=scale, headings=headings)])
@@ -656,20 +713,27 @@ class PersonDetector:
         limbs = torch.ones(len(self.zero), dtype=torch.bool)
         limbs[self.trans + self.rot] = False
         limbs &= scale > 0
-        standing = self.postures[0]
+        # a weak prior keeps a thin model from folding its limbs inside the silhouette: each body part
+        # (torso, each limb) near standing, or, given ``posture``, near either (a per-part mixture: a run's
+        # bent elbows are kept from the last good pose while the legs are free to take the other stride)
+        centres = self.postures[:1] if posture is None else torch.stack([self.postures[0], posture.cpu()])
+        centres = centres.to(x.dtype)[:, limbs]  # (K, L)
+        parts = torch.zeros(len(self.zero), len(self.groups), dtype=x.dtype)
+        for g, group in enumerate(self.groups):
+            parts[group, g] = 1.0
+        parts = parts[limbs]  # (L, G)
 
         def score(x):
-            # a weak prior around standing keeps a thin model from folding its limbs inside the silhouette
-            off = wrap_angle(x[:, limbs] - standing[limbs]) / self.posture_sigma
+            off = wrap_angle(x[:, None, limbs] - centres) / self.posture_sigma  # (N, K, L)
+            per_part = -0.5 * off.square() @ parts  # (N, K, G)
+            prior = (torch.logsumexp(per_part, 1) - math.log(len(centres))).sum(-1)
             with torch.no_grad():
-                return likelihood(
-                    x.to(device=device, dtype=dtype), obs
-                ).double().cpu() - 0.5 * off.square().sum(-1)
+                return likelihood(x.to(device=device, dtype=dtype), obs).double().cpu() + prior
 
         ll = score(x)
         # partitioned annealing (MacCormick & Isard; Fontmarty Table 2): the torso with the root first,
         # then one limb at a time, so each round searches a few DOFs instead of all of them
-        groups = body_partition(self.skeleton, per_limb=True)
+        groups = self.groups
         for k in range(iterations):
             shrink = 3.0 * (0.5 / 3.0) ** (k / max(1, iterations - 1))
             for group in groups:
@@ -703,12 +767,14 @@ class Recovery:
       is checked when the log-likelihood of the estimate collapses (below the running median of the last
       ``window`` good frames by more than ``max(4 x 1.48 MAD, collapse x |median|)``), on every frame after
       a lost one, and every ``check_every`` frames.
-    * **re-acquire**: the particles are moved so their roots sit over the hull (keeping their postures
-      and headings) and, with fresh detector candidates (every heading x posture at the hull), refined by
-      :meth:`PersonDetector.search` (``iterations`` rounds of partitioned annealing, about
-      ``iterations x (limbs + 1)`` frames' worth of likelihood evaluations); the result, weighted by its
-      likelihood, replaces the filter's particles (a re-initialisation, not an importance-corrected
-      weight: a lost track has no prior worth keeping).
+    * **re-acquire**: the particles and the last good estimate are moved so their roots sit over the hull
+      (keeping their postures and headings) and, with fresh detector candidates (every heading x posture
+      at the hull; front or back chosen by the way the person moved since the last good frame, as for
+      ``init="auto"``: :meth:`PersonDetector.heading_choices`), refined by :meth:`PersonDetector.search`
+      (``iterations`` rounds of partitioned annealing, about ``iterations x (limbs + 1)`` frames' worth of
+      likelihood evaluations; its posture prior is a per-part mixture of standing and the last good
+      estimate); the result, weighted by its likelihood, replaces the filter's particles (a
+      re-initialisation, not an importance-corrected weight: a lost track has no prior worth keeping).
 
     After a run, ``lost`` and ``recovered`` (lists of frame flags; recovered: the first good frame after a
     lost run, where the re-acquired track is accepted) describe what happened.
@@ -728,8 +794,10 @@ class Recovery:
         iterations: int = 2,
         init_extras=None,
         dtype: torch.dtype = torch.float32,
+        fps: float = 30.0,
     ):
         self.detector = detector
+        self.fps = float(fps)
         self.init_extras = init_extras
         self.likelihood = likelihood
         self.std = std
@@ -741,14 +809,21 @@ class Recovery:
         self._areas: list[float] = []
         self._lls: list[float] = []
         self._gap = False
+        self._last_good: Tensor | None = None  # (D,) the estimate of the last good frame, and its index
+        self._last_t = 0
+
+    @staticmethod
+    def _estimate(state) -> Tensor:
+        """The frame's estimate (D,): the filter's own where it reports one (the hybrid's refined pose)."""
+        return state.info["estimate"] if "estimate" in state.info else state.mean()
 
     def _estimate_ll(self, state, obs) -> float:
         with torch.no_grad():
-            return float(self.likelihood(state.mean()[None], obs)[0])
+            return float(self.likelihood(self._estimate(state)[None], obs)[0])
 
     def _root_distance(self, state, det: Detection) -> float:
         with torch.no_grad():
-            root = self.detector.skeleton.fk(state.mean().double().cpu())[self.detector.root]
+            root = self.detector.skeleton.fk(self._estimate(state).double().cpu())[self.detector.root]
         return float((root[:2] - det.centre[:2]).norm())
 
     def __call__(self, state, obs, generator=None):
@@ -784,14 +859,28 @@ class Recovery:
             else:
                 recovered = was_lost
                 self._lls.append(ll)
+                if not suspicious:
+                    self._last_good = self._estimate(state).detach().double().cpu()
+                    self._last_t = t
         self.lost.append(lost)
         self.recovered.append(recovered)
         return state
+
+    def _motion(self, det: Detection) -> Tensor | None:
+        """(2,) horizontal velocity (m/s) from the last good estimate's root to the hull, or None."""
+        if self._last_good is None:
+            return None
+        with torch.no_grad():
+            root = self.detector.skeleton.fk(self._last_good)[self.detector.root]
+        frames = max(1, len(self.lost) - self._last_t)
+        return (det.centre[:2] - root[:2]) * self.fps / frames
 
     def _reacquire(self, state, obs, det: Detection, generator):
         x = state.particles
         n = x.shape[-2]
         own = x.reshape(-1, x.shape[-1]).double().cpu()
+        if self._last_good is not None:
+            own = torch.cat([own, self._last_good[None]])
         own = self.detector.place(own, self.detector.root_target(det)[None].expand(len(own), -1))
         g = torch.Generator().manual_seed(
             int(torch.randint(2**31 - 1, (1,), generator=generator, device=x.device))
@@ -805,12 +894,19 @@ class Recovery:
             start=own,
             generator=g,
             det=det,
+            motion=self._motion(det),
             strata=False,
             device=x.device,
             dtype=self.dtype,
+            posture=self._last_good,
         )
         new = new.to(x)
         log_w = (ll - torch.logsumexp(ll, -1)).to(state.log_weights)
         new = new.reshape(x.shape)
         extras = dict(self.init_extras(new)) if self.init_extras is not None else dict(state.extras)
-        return state.replace(particles=new, log_weights=log_w.reshape(state.log_weights.shape), extras=extras)
+        # a filter that reports its own estimate (the hybrid's refined one, ``info["estimate"]``) made it from
+        # the lost particles: the frame's estimate is the re-acquired set's mean instead
+        info = {k: v for k, v in state.info.items() if k != "estimate"}
+        return state.replace(
+            particles=new, log_weights=log_w.reshape(state.log_weights.shape), extras=extras, info=info
+        )

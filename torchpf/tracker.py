@@ -608,7 +608,7 @@ class Tracker(nn.Module):
         t0 = time.perf_counter()
         if self.temperature == "auto":
             self._calibrate_temperature(x0, _to_device(frames[0], self.device, self.dtype), generator)
-        hook = self._recovery() if self.recovery and self.cameras is not None else None
+        hook = self._recovery(fps) if self.recovery and self.cameras is not None else None
         buffer = _FrameBuffer()
         writer = MocapCsvWriter(out, self.skeleton.dof_names, fps=fps) if out is not None else None
         state = None
@@ -724,7 +724,7 @@ class Tracker(nn.Module):
         pose, fitted, _ = detector.fit(frames[0], det=det, motion=motion)
         return pose, fitted if self._calibrates(calibrate, frames[0], init="auto") else None
 
-    def _recovery(self):
+    def _recovery(self, fps: float = 30.0):
         from torchpf.detect import Recovery
 
         std = _diffusion_std(self.dynamics)
@@ -735,4 +735,5 @@ class Tracker(nn.Module):
             std=std,
             init_extras=self.filter.dynamics.init_extras,
             dtype=self.dtype,
+            fps=fps,
         )
