@@ -573,7 +573,6 @@ class PersonDetector:
         quick: int = 60,
         iterations: int = 200,
         keep: int = 2,
-        all_kept: bool = False,
     ):
         """Pose (and body) from one frame's masks alone: the central heading of each stratum of
         :meth:`heading_choices` x {standing, each walking and running stride} is refined by
@@ -584,9 +583,7 @@ class PersonDetector:
 
         Returns:
             ``(pose (D,), fitted, report)``: the refined pose, the fitted skeleton (radii, scale) and its
-            :class:`~torchpf.calibrate.CalibrationReport`; with ``all_kept`` a list of those for the ``keep``
-            fully refined candidates, best first (``Tracker`` picks among them over the first frames).
-            Raises ValueError when no person is detected.
+            :class:`~torchpf.calibrate.CalibrationReport`; raises ValueError when no person is detected.
         """
         det = det if det is not None else self.detect(obs)
         if det is None:
@@ -601,11 +598,12 @@ class PersonDetector:
             return report.loss[-1], fitted, report
 
         quick_fits = sorted((run(p, quick)[0], k) for k, p in enumerate(cand))
-        fits = [run(cand[k], iterations) for _, k in quick_fits[:keep]]
-        fits.sort(key=lambda fit: float(fit[0]))
-        if all_kept:
-            return [(report.poses[0].to(torch.float64), fitted, report) for _, fitted, report in fits]
-        _, fitted, report = fits[0]
+        best = None
+        for _, k in quick_fits[:keep]:
+            loss, fitted, report = run(cand[k], iterations)
+            if best is None or loss < best[0]:
+                best = (loss, fitted, report)
+        _, fitted, report = best
         return report.poses[0].to(torch.float64), fitted, report
 
     def search(

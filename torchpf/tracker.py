@@ -136,10 +136,6 @@ def _to_device(obs, device, dtype):
     return obs
 
 
-#: frames over which ``track(init="auto")`` compares its candidate initial poses (by their evidence)
-AUTO_INIT_FRAMES = 6
-
-
 def _with_outline_offset(obs, cue, pose):
     """``obs`` (a :class:`Frame` or :class:`Silhouettes`) with its masks' outline offset measured by ``cue``
     (:meth:`~torchpf.likelihoods.images.ImageLikelihood.boundary_offset`) at ``pose``, the last estimate."""
@@ -725,25 +721,8 @@ class Tracker(nn.Module):
         later = detector.detect(frames[k]) if k > 0 else None
         fps = self.fps or 30.0
         motion = (later.centre - det.centre) * fps / k if later is not None else None
-        fits = detector.fit(frames[0], det=det, motion=motion, keep=3, all_kept=True)
-        calibrates = self._calibrates(calibrate, frames[0], init="auto")
-        pose, fitted, _ = fits[0]
-        n = min(AUTO_INIT_FRAMES, len(frames))
-        if len(fits) > 1 and n > 1:
-            # One frame's masks cannot always tell a stride from its mirror image, or the front from the
-            # back (a mask defect, a slow start): each kept fit is tracked over the first frames and the one
-            # with the highest evidence log p(z_1..n | fit) starts the track.
-            first = [frames[t] for t in range(n)]
-            best = None
-            for p, f, _ in fits:
-                trial = type(self)(
-                    f if calibrates else self.skeleton, self.cameras, **{**self._options, "progress": False}
-                )
-                evidence = trial.track(first, init=p, calibrate=False, seed=0).log_evidence
-                if best is None or evidence > best[0]:
-                    best = (evidence, p, f)
-            _, pose, fitted = best
-        return pose, fitted if calibrates else None
+        pose, fitted, _ = detector.fit(frames[0], det=det, motion=motion)
+        return pose, fitted if self._calibrates(calibrate, frames[0], init="auto") else None
 
     def _recovery(self, fps: float = 30.0):
         from torchpf.detect import Recovery

@@ -196,37 +196,3 @@ def test_track_fits_an_uncalibrated_body_at_the_initial_pose(case):
         return float((est - truth).norm(dim=-1).mean())
 
     assert mpjpe(fitted) < 0.08
-
-
-def test_auto_init_keeps_the_fit_the_first_frames_prefer(case, monkeypatch):
-    """Of several frame-0 fits, ``init="auto"`` starts from the one with the highest evidence over the first
-    frames, not from the lowest frame-0 loss: here the first candidate is the truth moved 0.4 m sideways."""
-    from benchmarks.auto_init import joint_error
-    from torchpf.detect import fit_body_to_frame
-
-    truth = case.angles[0].to(torch.float64)
-    fitted, _ = fit_body_to_frame(case.skeleton, case.cameras, case.frames[0], truth, iterations=60)
-    wrong = truth.clone()
-    root = case.skeleton.parents.index(-1)
-    prismatic = [d for d in range(len(truth)) if not bool(case.skeleton.dof_revolute[d])][:3]
-    for d in prismatic:  # the root's horizontal translations (found from FK, not names): off to the side
-        step = truth.clone()
-        step[d] += 1.0
-        moved = case.skeleton.fk(step)[root] - case.skeleton.fk(truth)[root]
-        if abs(float(moved[2])) < 0.5:
-            wrong[d] += 0.4 / math.sqrt(2)
-    calls = []
-
-    def fake_fit(self, obs, **options):
-        calls.append(options.get("all_kept"))
-        return [(wrong, fitted, None), (truth, fitted, None)]
-
-    monkeypatch.setattr(PersonDetector, "fit", fake_fit)
-    tracker = Tracker(case.skeleton, case.cameras, n_particles=60, fps=30.0, progress=False)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        result = tracker.track(case.frames, init="auto")
-    assert calls == [True]
-    assert result.skeleton is fitted
-    err = joint_error(case, result.skeleton, result.angles)
-    assert float(err[0]) < 0.1  # started from the truth; from `wrong` it is 0.24 m off
