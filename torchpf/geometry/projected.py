@@ -152,8 +152,24 @@ def distance_to_capsules(points: torch.Tensor, caps: Capsules2D, *, signed: bool
     G, R, pts = _point_groups(points, batch)
     pts = pts.to(caps.pa)
     fields = [f.reshape(G, R * C, -1) for f in (caps.pa, caps.pb, caps.ra, caps.rb)]  # (G, R C, 2 or 1)
-    with torch.no_grad():  # every capsule, no graph, in cache-sized chunks of rows: each point's nearest
-        valid = caps.valid.reshape(G, R * C, 1)
+    best, nearest = _nearest_capsules(pts, fields, caps.valid.reshape(G, R * C, 1), C)
+    floor = -math.inf if signed else 0.0
+    if not (torch.is_grad_enabled() and any(f.requires_grad for f in fields)):
+        return best.clamp_min(floor).reshape(*batch, -1)
+    # The gradient is the nearest capsule's (that of the min): recomputed with autograd for that capsule
+    # only, (G, R, P) values instead of (G, R, C, P).
+    d, _ = _nearest_axis_distance(pts, fields, nearest, best)
+    return d.clamp_min(floor).reshape(*batch, -1)
+
+
+def _nearest_capsules(pts, fields, valid, C: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Signed distance ``best`` (G, R, P) of points ``pts`` (G, P, 2) to the nearest of C valid capsules per
+    row (``inf`` without one) and that capsule's index ``nearest`` (G, R, P); ``fields`` are ``pa``, ``pb``
+    (G, R C, 2), ``ra``, ``rb`` (G, R C, 1), ``valid`` (G, R C, 1). No graph; every capsule is tested in
+    cache-sized chunks of rows."""
+    G, RC = valid.shape[:2]
+    R = RC // max(1, C)
+    with torch.no_grad():
         n = max(1, _COVERAGE_CHUNK // max(1, G * C * pts.shape[1]))
         parts = []
         for r0 in range(0, R, n):
@@ -162,12 +178,16 @@ def distance_to_capsules(points: torch.Tensor, caps: Capsules2D, *, signed: bool
             parts.append(sdf.view(G, -1, C, sdf.shape[-1]).min(-2))
         best = torch.cat([b for b, _ in parts], 1) if len(parts) > 1 else parts[0][0]  # (G, R, P)
         nearest = torch.cat([i for _, i in parts], 1) if len(parts) > 1 else parts[0][1]
-    floor = -math.inf if signed else 0.0
-    if not (torch.is_grad_enabled() and any(f.requires_grad for f in fields)):
-        return best.clamp_min(floor).reshape(*batch, -1)
-    # The gradient is the nearest capsule's (that of the min): recomputed with autograd for that capsule
-    # only, (G, R, P) values instead of (G, R, C, P).
-    P = pts.shape[1]
+    return best, nearest
+
+
+def _nearest_axis_distance(pts, fields, nearest, best):
+    """``|p - q(t)| - r(t)`` (G, R P) of every point to its ``nearest`` capsule (:func:`_nearest_capsules`),
+    differentiable in ``fields``; ``inf`` where ``best`` is (no valid capsule). Also returns the terms its
+    gradient needs: the capsule (``pa``, ``pb``, ``ra``, ``rb``), ``diff = p - pa``, ``e``, ``ee``, the
+    axis parameter ``s`` and ``t = clamp(s, 0, 1)``, ``q = diff - t e``, ``qq = |q|^2``."""
+    G, R, P = nearest.shape
+    C = fields[0].shape[1] // max(1, R)
     rows = torch.arange(R, device=nearest.device).repeat_interleave(P) * C + nearest.reshape(G, R * P)
     pa, pb, ra, rb = (f.gather(1, rows.unsqueeze(-1).expand(-1, -1, f.shape[-1])) for f in fields)
     p = pts.repeat(1, R, 1)  # (G, R P, 2), row r's copy of the points
@@ -176,9 +196,20 @@ def distance_to_capsules(points: torch.Tensor, caps: Capsules2D, *, signed: bool
     s = torch.where(ee > 1e-12, (diff * e).sum(-1) / ee.clamp_min(1e-12), 0.0)  # the axis parameter of p
     t = s.clamp(0.0, 1.0)
     q = diff - t.unsqueeze(-1) * e
-    d = (q * q).sum(-1).clamp_min(1e-12).sqrt() - (ra + t.unsqueeze(-1) * (rb - ra)).squeeze(-1)
+    qq = (q * q).sum(-1)
+    d = qq.clamp_min(1e-12).sqrt() - (ra + t.unsqueeze(-1) * (rb - ra)).squeeze(-1)
     d = torch.where(torch.isfinite(best).reshape(G, R * P), d, math.inf)  # no valid capsule: inf
-    return d.clamp_min(floor).reshape(*batch, -1)
+    return d, {
+        "rows": rows,
+        "capsule": (pa, pb, ra, rb),
+        "diff": diff,
+        "e": e,
+        "ee": ee,
+        "s": s,
+        "t": t,
+        "q": q,
+        "qq": qq,
+    }
 
 
 def _capsule_sdf(pts, pa, pb, ra, rb) -> torch.Tensor:
@@ -283,9 +314,11 @@ def _unit_samples(n_body: int, n_cap: int, generator, dtype, device, batch: tupl
 
 @functools.lru_cache(maxsize=64)
 def _fixed_unit_samples(n_body: int, n_cap: int, dtype, device):
-    ub = sample_pattern(n_body, 2, dtype=dtype, device=device)
-    uc = sample_pattern(n_cap, 2, dtype=dtype, device=device, offset=0.25).expand(2, n_cap, 2)
-    return _polar(ub, uc)
+    # ordinary tensors even when first asked for in inference mode (capsule_chamfer): autograd reuses them
+    with torch.inference_mode(False):
+        ub = sample_pattern(n_body, 2, dtype=dtype, device=device)
+        uc = sample_pattern(n_cap, 2, dtype=dtype, device=device, offset=0.25).expand(2, n_cap, 2)
+        return _polar(ub, uc)
 
 
 def _polar(ub: torch.Tensor, uc: torch.Tensor):
@@ -318,17 +351,31 @@ def sample_in_capsules(
         weights: (..., C * M) pixel area per point (0 for invalid capsules); their sum over a capsule is
         its area, differentiable with respect to the capsule parameters.
     """
+    e, n, _, alpha, beta, w = _point_coordinates(caps, n_body, n_cap, generator)
+    pts = torch.addcmul(caps.pa.unsqueeze(-2), alpha.unsqueeze(-1), e.unsqueeze(-2))
+    pts = torch.addcmul(pts, beta.unsqueeze(-1), n.unsqueeze(-2))  # (..., C, M, 2)
+    batch, C, M = caps.pa.shape[:-2], pts.shape[-3], pts.shape[-2]
+    return pts.reshape(*batch, C * M, 2), w.reshape(*batch, C * M)
+
+
+def _point_coordinates(caps: Capsules2D, n_body: int, n_cap: int, generator=None, derivatives: bool = False):
+    """The points of :func:`sample_in_capsules` in each capsule's frame: ``p = pa + alpha e + beta n`` with
+    ``e = pb - pa`` and its normal ``n = (-e_y, e_x)``, and their areas ``w``.
+
+    Returns ``e``, ``n`` (..., C, 2), ``L = |e|`` (..., C) (clamped to 1e-9), ``alpha``, ``beta``, ``w``
+    (..., C, M) with M = n_body + 2 n_cap (body points, then the caps of ``pa`` and of ``pb``); with
+    ``derivatives`` also ``coef`` (..., C, 3 M, 3): the derivatives of ``alpha``, ``beta`` and ``w`` (rows
+    ``m``, ``M + m``, ``2 M + m``) in ``ra``, ``rb`` and ``L`` (columns), which with ``dL/de = e / L``
+    give the points' and areas' Jacobian in the capsule (:func:`torchpf.geometry.capsule_chamfer`)."""
     pa, pb, ra, rb = caps.pa, caps.pb, caps.ra, caps.rb
     batch = pa.shape[:-1]
     u, h, cos_c, sin_c = _unit_samples(n_body, n_cap, generator, pa.dtype, pa.device, batch)
-    # Every point is pa + alpha e + beta n with e = pb - pa and n its normal (|n| = |e| = L): two products
-    # over the points once the per-capsule coefficients are known.
     e = pb - pa
     n = torch.stack([-e[..., 1], e[..., 0]], -1)
     L = e.norm(dim=-1).clamp_min(1e-9)
     inv = (1.0 / L).unsqueeze(-1)
-    # Body: t has density proportional to r(t) = ra + t (rb - ra) (inverse CDF of a linear density), the
-    # offset across the axis is (2 s - 1) r(t).
+    # Body: t has density proportional to r(t) = ra + t (rb - ra) (inverse CDF of a linear density:
+    # ra t + qa t^2 = qc), the offset across the axis is (2 s - 1) r(t).
     ra_, rb_ = ra.unsqueeze(-1), rb.unsqueeze(-1)
     qa = 0.5 * (rb_ - ra_)
     qc = u * 0.5 * (ra_ + rb_)
@@ -336,21 +383,51 @@ def sample_in_capsules(
     rt = ra_ + t * (rb_ - ra_)
     # Caps: uniform in a half-disc facing away from the other end (centre pa: along -e; pb: along +e).
     ra_l, rb_l = ra_ * inv, rb_ * inv
-    alpha = torch.cat([t, -cos_c[..., 0, :] * ra_l, 1 + cos_c[..., 1, :] * rb_l], -1)
-    beta = torch.cat([h * rt * inv, sin_c[..., 0, :] * ra_l, sin_c[..., 1, :] * rb_l], -1)
-    pts = torch.addcmul(pa.unsqueeze(-2), alpha.unsqueeze(-1), e.unsqueeze(-2))
-    pts = torch.addcmul(pts, beta.unsqueeze(-1), n.unsqueeze(-2))  # (..., C, M, 2)
+    cos_a, cos_b, sin_a, sin_b = cos_c[..., 0, :], cos_c[..., 1, :], sin_c[..., 0, :], sin_c[..., 1, :]
+    alpha = torch.cat([t, -cos_a * ra_l, 1 + cos_b * rb_l], -1)
+    beta = torch.cat([h * rt * inv, sin_a * ra_l, sin_b * rb_l], -1)
     half_disc = 0.5 * math.pi / n_cap
-    w = torch.cat(
+    valid = caps.valid.unsqueeze(-1).to(pa.dtype)
+    w = (
+        torch.cat(
+            [
+                (L * (ra + rb) / n_body).unsqueeze(-1).expand(*batch, n_body),
+                (half_disc * ra * ra).unsqueeze(-1).expand(*batch, n_cap),
+                (half_disc * rb * rb).unsqueeze(-1).expand(*batch, n_cap),
+            ],
+            -1,
+        )
+        * valid
+    )
+    if not derivatives:
+        return e, n, L, alpha, beta, w
+    # implicit derivatives of the body's t: F = ra t + qa t^2 - qc = 0, dF/dt = r(t)
+    t_ra = -(t - 0.5 * t * t - 0.5 * u) / rt
+    t_rb = -(0.5 * t * t - 0.5 * u) / rt
+    rt_ra = 1 - t + (rb_ - ra_) * t_ra
+    rt_rb = t + (rb_ - ra_) * t_rb
+    zb, zc = torch.zeros_like(t), torch.zeros_like(cos_a * ra_l)
+    hi = h * inv
+    mL = -inv  # d(x / L)/dL = -(x / L) / L
+    a_ra = torch.cat([t_ra, -cos_a * inv, zc], -1)
+    a_rb = torch.cat([t_rb, zc, cos_b * inv], -1)
+    a_L = torch.cat([zb, alpha[..., n_body:] - torch.cat([zc, 1 + zc], -1)], -1) * mL
+    b_ra = torch.cat([hi * rt_ra, sin_a * inv, zc], -1)
+    b_rb = torch.cat([hi * rt_rb, zc, sin_b * inv], -1)
+    b_L = beta * mL
+    wb = torch.ones_like(t) / n_body
+    w_ra = torch.cat([wb * L.unsqueeze(-1), 2 * half_disc * ra_ + zc, zc], -1) * valid
+    w_rb = torch.cat([wb * L.unsqueeze(-1), zc, 2 * half_disc * rb_ + zc], -1) * valid
+    w_L = torch.cat([wb * (ra_ + rb_), zc, zc], -1) * valid
+    coef = torch.stack(
         [
-            (L * (ra + rb) / n_body).unsqueeze(-1).expand(*batch, n_body),
-            (half_disc * ra * ra).unsqueeze(-1).expand(*batch, n_cap),
-            (half_disc * rb * rb).unsqueeze(-1).expand(*batch, n_cap),
+            torch.cat([a_ra, b_ra, w_ra], -1),
+            torch.cat([a_rb, b_rb, w_rb], -1),
+            torch.cat([a_L, b_L, w_L], -1),
         ],
         -1,
-    ) * caps.valid.unsqueeze(-1)
-    C, M = pts.shape[-3], pts.shape[-2]
-    return pts.reshape(*batch[:-1], C * M, 2), w.reshape(*batch[:-1], C * M)
+    )
+    return e, n, L, alpha, beta, w, coef
 
 
 def outline_points(caps: Capsules2D, n_side: int = 6, n_cap: int = 3) -> tuple[torch.Tensor, torch.Tensor]:
