@@ -104,110 +104,112 @@ class _Chamfer(torch.autograd.Function):
 def _chamfer(pa, pb, ra, rb, valid, image, fg, tau: float, n_body: int, n_cap: int, grad: bool):
     """Both terms ``(G, N)`` of capsules ``pa``, ``pb`` (G, N, C, 2), ``ra``, ``rb`` (G, N, C, 1), ``valid``
     (G, N, C) against images (G, H, W) and samples (G, n, 2); with ``grad`` also each term's gradient in
-    ``(pa, pb, ra, rb)`` ``(G, N, C, 6)``, else None."""
+    ``(pa, pb, ra, rb)`` ``(G, N, C, 6)``, else None.
+
+    Coordinates are kept as separate x and y tensors: on a CPU an element-wise pass over a trailing dim of
+    size 2 (a broadcast, a sum, a stack) costs several plain passes of the same size."""
     # inference mode: no graph and no version counters, a tenth less per-operation overhead than no_grad
     with torch.inference_mode():
-        caps = Capsules2D(pa, pb, ra[..., 0], rb[..., 0], valid)
-        model, jm = _model_term(caps, image, tau, n_body, n_cap, grad)
-        cover, jc = _cover_term(caps, fg, tau, grad)
+        model, jm = _model_term(pa, pb, ra[..., 0], rb[..., 0], valid, image, tau, n_body, n_cap, grad)
+        cover, jc = _cover_term(pa, pb, ra, rb, valid, fg, tau, grad)
     return model, cover, ((jm, jc) if grad else None)
 
 
-def _model_term(caps: Capsules2D, image, tau: float, n_body: int, n_cap: int, grad: bool):
+def _model_term(pa, pb, ra, rb, valid, image, tau: float, n_body: int, n_cap: int, grad: bool):
     """``sum_i w_i rho(d_mask(p_i)) / sum_i w_i`` (G, N) and its gradient (G, N, C, 6) or None."""
-    G, N, C = caps.valid.shape
-    out = _point_coordinates(caps, n_body, n_cap, derivatives=grad)
-    e, n, L, alpha, beta, w = out[:6]
-    pts = torch.addcmul(caps.pa.unsqueeze(-2), alpha.unsqueeze(-1), e.unsqueeze(-2))
-    pts = torch.addcmul(pts, beta.unsqueeze(-1), n.unsqueeze(-2))  # (G, N, C, M, 2)
-    M = pts.shape[-2]
-    value, d_value = _distance_lookup(image, pts.reshape(G, -1, 2), grad)
+    G, N, C = valid.shape
+    ax, ay = pa.unbind(-1)
+    ex, ey = (pb - pa).unbind(-1)
+    L = torch.hypot(ex, ey).clamp_min(1e-9)
+    alpha, beta, w, *der = _point_coordinates(L, ra, rb, valid, n_body, n_cap, derivatives=grad)
+    exu, eyu = ex.unsqueeze(-1), ey.unsqueeze(-1)
+    # p = pa + alpha e + beta n, n = (-e_y, e_x): (G, N, C, M) each
+    px = torch.addcmul(torch.addcmul(ax.unsqueeze(-1), alpha, exu), beta, eyu, value=-1.0)
+    py = torch.addcmul(torch.addcmul(ay.unsqueeze(-1), alpha, eyu), beta, exu)
+    M = px.shape[-1]
+    value, gx, gy = _distance_lookup(image, px.view(G, -1), py.view(G, -1), grad)
     value = value.view(G, N, C, M)
     d = value.clamp_max(tau)
     f = d * d
-    W = w.sum((-2, -1))
-    Wc = W.clamp_min(1e-9)
+    Wc = w.sum((-2, -1)).clamp_min(1e-9)
     model = (w * f).sum((-2, -1)) / Wc
     if not grad:
         return model, None
-    coef = out[6]
     inv = (1.0 / Wc)[..., None, None]
-    # d model / d p_i (G, N, C, M, 2) and d model / d w_i (G, N, C, M)
-    g_pts = (w * inv * 2 * d * (value <= tau)).unsqueeze(-1) * d_value.view(G, N, C, M, 2)
-    g_w = (f - (model * (W > 1e-9))[..., None, None]) * inv
-    # p = pa + alpha e + beta n(e), n = (-e_y, e_x): d/de of beta n^T g is beta (g_y, -g_x)
-    s_e = (g_pts * e.unsqueeze(-2)).sum(-1)
-    s_n = (g_pts * n.unsqueeze(-2)).sum(-1)
-    g_a = (alpha.unsqueeze(-1) * g_pts).sum(-2)
-    g_b = (beta.unsqueeze(-1) * g_pts).sum(-2)
-    g_e = g_a + torch.stack([g_b[..., 1], -g_b[..., 0]], -1)
-    # alpha, beta and w through ra, rb and L: one product with their derivatives
-    g_rl = (torch.cat([s_e, s_n, g_w], -1).unsqueeze(-2) @ coef).squeeze(-2)  # (G, N, C, 3)
-    g_e = g_e + (g_rl[..., 2] * (L > 1e-9) / L).unsqueeze(-1) * e
-    g_pa = g_pts.sum(-2) - g_e
-    return model, torch.cat([g_pa, g_e, g_rl[..., :2]], -1)
+    # d model / d p_i and d model / d w_i (G, N, C, M); (all weights 0: the model term is 0 either way)
+    k = torch.where(value <= tau, d, 0.0) * (2 * inv) * w
+    g_px, g_py = k * gx.view(G, N, C, M), k * gy.view(G, N, C, M)
+    g_w = (f - model[..., None, None]) * inv
+    s_e = torch.addcmul(g_px * exu, g_py, eyu)  # g . e
+    s_n = torch.addcmul(g_py * exu, g_px, eyu, value=-1.0)  # g . n
+    # d/de of alpha g . e + beta g . n(e) at fixed alpha, beta: alpha g + beta (g_y, -g_x)
+    g_ex = (alpha * g_px + beta * g_py).sum(-1)
+    g_ey = (alpha * g_py - beta * g_px).sum(-1)
+    # alpha, beta and w through ra, rb and L
+    vec = torch.cat([s_e, s_n, g_w], -1)
+    g_ra, g_rb, g_L = ((vec * c).sum(-1) for c in der[0])
+    g_L = g_L / L
+    g_ex, g_ey = torch.addcmul(g_ex, g_L, ex), torch.addcmul(g_ey, g_L, ey)
+    g_ax, g_ay = g_px.sum(-1) - g_ex, g_py.sum(-1) - g_ey
+    return model, torch.stack([g_ax, g_ay, g_ex, g_ey, g_ra, g_rb], -1)
 
 
-def _cover_term(caps: Capsules2D, fg, tau: float, grad: bool):
+def _cover_term(pa, pb, ra, rb, valid, fg, tau: float, grad: bool):
     """``(1 / n) sum_j rho(d_model(q_j))`` (G, N) and its gradient (G, N, C, 6) or None."""
-    G, N, C = caps.valid.shape
+    G, N, C = valid.shape
     n = fg.shape[1]
-    fields = [f.reshape(G, N * C, -1) for f in (caps.pa, caps.pb, caps.ra, caps.rb)]
-    best, nearest = _nearest_capsules(fg, fields, caps.valid.reshape(G, N * C, 1), C)
+    fields = [f.reshape(G, N * C, -1) for f in (pa, pb, ra, rb)]
+    best, nearest = _nearest_capsules(fg, fields, valid.reshape(G, N * C, 1), C)
     if not grad:
         d = best.clamp(0.0, tau)
         return (d * d).mean(-1), None
     d, k = _nearest_axis_distance(fg, fields, nearest, best)
     dc = d.clamp(0.0, tau)
     cover = (dc * dc).view(G, N, n).mean(-1)
-    # d = |q| - ra - t (rb - ra), q = diff - t e, t = clamp(s, 0, 1), s = diff.e / |e|^2, diff = p - pa
-    pa, pb, ra, rb = k["capsule"]
-    e, diff, ee, s, t, q = k["e"], k["diff"], k["ee"], k["s"], k["t"], k["q"]
-    g_d = 2 * dc / n * ((d >= 0) & (d <= tau))  # d cover / d d_j (inf: no valid capsule, no gradient)
-    u = q * ((k["qq"] >= 1e-12) / k["qq"].clamp_min(1e-12).sqrt()).unsqueeze(-1)  # d |q| / d q
-    t1 = t.unsqueeze(-1)
-    # d d / d t, through s where the clamp passes it
-    d_t = -(u * e).sum(-1) - (rb - ra).squeeze(-1)
-    active = (ee > 1e-12) & (s >= 0) & (s <= 1)
-    d_s = (d_t * active / ee.clamp_min(1e-12)).unsqueeze(-1)
-    two_se = 2 * s.unsqueeze(-1) * e
-    g_pa = -(1 - t1) * u + d_s * (two_se - e - diff)
-    g_pb = -t1 * u + d_s * (diff - two_se)
-    rows = torch.cat([g_pa, g_pb, t1 - 1, -t1], -1) * g_d.unsqueeze(-1)  # (G, N n, 6)
+    # d = |q| - ra - t (rb - ra), q = p - pa - t e, t = clamp(s, 0, 1), s = (p - pa) . e / |e|^2
+    ex, ey, dx, dy, s, t = k["ex"], k["ey"], k["dx"], k["dy"], k["s"], k["t"]
+    g_d = torch.where(dc == d, dc, 0.0) * (2.0 / n)  # d cover / d d_j where the clamps pass it (not inf)
+    r_inv = k["qq"].clamp_min(1e-12).rsqrt()
+    ux, uy = k["qx"] * r_inv, k["qy"] * r_inv  # d |q| / d q
+    d_t = -torch.addcmul(ux * ex, uy, ey) - (k["rb"] - k["ra"])  # d d / d t
+    d_s = torch.where(t == s, d_t, 0.0) * k["inv_ee"]  # through s where the clamp passes it
+    two_s = 2 * s
+    # d s / d pa = (2 s e - e - (p - pa)) / |e|^2, d s / d pb = ((p - pa) - 2 s e) / |e|^2
+    g_bx, g_by = torch.addcmul(-t * ux, d_s, dx - two_s * ex), torch.addcmul(-t * uy, d_s, dy - two_s * ey)
+    g_ax = torch.addcmul(-ux - g_bx, d_s, -ex)  # -(1 - t) u + d_s (2 s e - e - diff)
+    g_ay = torch.addcmul(-uy - g_by, d_s, -ey)
+    rows = torch.stack([g_ax, g_ay, g_bx, g_by, t - 1, -t], -1) * g_d.unsqueeze(-1)  # (G, N n, 6)
     j = torch.zeros(G * N * C, 6, dtype=rows.dtype, device=rows.device)
-    index = (k["rows"] + torch.arange(G, device=rows.device).unsqueeze(-1) * (N * C)).reshape(-1)
-    j.index_add_(0, index, rows.reshape(-1, 6))
+    j.index_add_(0, k["index"], rows.view(-1, 6))
     return cover, j.view(G, N, C, 6)
 
 
-def _distance_lookup(image, uv, grad: bool):
-    """Bilinear look-up of distance images (G, H, W) at pixel coords ``uv`` (G, P, 2) (pixel centres at
-    integers), continued outside the image by the distance to it (the value at the nearest border pixel
+def _distance_lookup(image, px, py, grad: bool):
+    """Bilinear look-up of distance images (G, H, W) at pixel coords ``px``, ``py`` (G, P) (pixel centres
+    at integers), continued outside the image by the distance to it (the value at the nearest border pixel
     plus that distance: what ``grid_sample(..., padding_mode="border")`` plus the offset gives); returns
-    the values (G, P) and, with ``grad``, their gradient in ``uv`` (G, P, 2), else None."""
+    the values (G, P) and, with ``grad``, their gradient in ``px`` and ``py`` (G, P each), else Nones."""
     G, H, W = image.shape
-    hi = uv.new_tensor([W - 1.0, H - 1.0])
-    inside = torch.minimum(uv.clamp_min(0.0), hi)
-    off = uv - inside
-    oo = (off * off).sum(-1)
-    out_dist = oo.clamp_min(1e-12).sqrt() * (oo > 0)
+    ix, iy = px.clamp(0.0, W - 1.0), py.clamp(0.0, H - 1.0)
+    ox, oy = px - ix, py - iy
+    oo = torch.addcmul(ox * ox, oy, oy)
     if H < 2 or W < 2:  # a one-pixel-wide image: its border replicated, so both neighbours exist
         image = F.pad(image.unsqueeze(1), (0, int(W < 2), 0, int(H < 2)), mode="replicate").squeeze(1)
         H, W = image.shape[-2:]
-    corner = inside.floor().clamp_max_(uv.new_tensor([W - 2.0, H - 2.0]))
-    frac = inside - corner
-    fx, fy = frac.unbind(-1)
-    ci = corner.long()
-    idx = ci[..., 1] * W + ci[..., 0]
-    v = image.reshape(G, H * W).gather(1, torch.cat([idx, idx + 1, idx + W, idx + W + 1], 1)).view(G, 4, -1)
+    x0, y0 = ix.floor().clamp_max_(W - 2.0), iy.floor().clamp_max_(H - 2.0)
+    fx, fy = ix - x0, iy - y0
+    idx = torch.add(x0, y0, alpha=W).long().unsqueeze(1)
+    corners = torch.tensor([0, 1, W, W + 1], device=idx.device).view(1, 4, 1)
+    v = image.reshape(G, H * W).gather(1, (idx + corners).view(G, -1)).view(G, 4, -1)
     v00, v01, v10, v11 = v.unbind(1)
     dx0, dx1 = v01 - v00, v11 - v10
     top = torch.addcmul(v00, fx, dx0)
-    bottom = torch.addcmul(v10, fx, dx1)
-    value = torch.addcmul(top, fy, bottom - top) + out_dist
+    dy = torch.addcmul(v10, fx, dx1) - top
+    value = torch.addcmul(top, fy, dy) + oo.sqrt()
     if not grad:
-        return value, None
-    within = (uv >= 0) & (uv <= hi)  # where the clamp passes the gradient
-    g = torch.stack([torch.addcmul(dx0, fy, dx1 - dx0), bottom - top], -1) * within
-    g = g + off * ((oo >= 1e-12) / oo.clamp_min(1e-12).sqrt()).unsqueeze(-1)
-    return value, g
+        return value, None, None
+    # inside the image (no offset along an axis) the bilinear slope, outside the offset's direction
+    r_inv = oo.clamp_min(1e-12).rsqrt()
+    gx = torch.where(ox == 0, torch.addcmul(dx0, fy, dx1 - dx0), ox * r_inv)
+    gy = torch.where(oy == 0, dy, oy * r_inv)
+    return value, gx, gy
