@@ -84,7 +84,11 @@ def project_capsules(camera, a: torch.Tensor, b: torch.Tensor, radius: torch.Ten
         sphere is an ellipse, this circle has its area (exact on the optical axis).
     """
     ends = torch.stack([a, b], -2)  # (..., C, 2, 3)
-    K, _, _, dist = camera._params(ends)
+    K, R, t, dist = camera._params(ends)
+    if isinstance(camera, CameraRig) and dist is None and not (torch.is_grad_enabled() and K.requires_grad):
+        if not (torch.is_grad_enabled() and (R.requires_grad or t.requires_grad)):
+            pa, pb, ra, rb, valid = _RigProjection.apply(ends, radius.to(ends), K, R, t, float(near))
+            return Capsules2D(pa, pb, ra, rb, valid)
     xc = camera.to_camera(ends)
     uv = _camera_to_pixels(xc, K, dist)  # camera.project(ends), from the camera-frame points
     focal = camera.focal
@@ -99,6 +103,73 @@ def project_capsules(camera, a: torch.Tensor, b: torch.Tensor, radius: torch.Ten
     rad = focal * r.unsqueeze(-1) / zc * (xc.norm(dim=-1) / zc).sqrt()
     valid = (z > near).all(-1)
     return Capsules2D(uv[..., 0, :], uv[..., 1, :], rad[..., 0], rad[..., 1], valid)
+
+
+class _RigProjection(torch.autograd.Function):
+    """:func:`project_capsules` into a rig without distortion, as one autograd node: the forward keeps the
+    projection's derivatives (perspective division and the radius ``f r |x_c|^(1/2) z^(-3/2)``), the
+    backward maps the capsules' gradient to the ends (and radii) with them, instead of back-propagating
+    through some forty small operations (a refinement step's cost, :mod:`torchpf.refine`). Same values as
+    the general path."""
+
+    @staticmethod
+    def forward(ctx, ends, radius, K, R, t, near: float):
+        # ends (..., C, 2, 3), radius (C,), K, R (V, 3, 3), t (V, 3); runs without a graph (autograd.Function)
+        batch, C, V = ends.shape[:-3], ends.shape[-3], R.shape[0]
+        xc = (ends.reshape(-1, 3) @ R.permute(2, 0, 1).reshape(3, V * 3)).view(-1, V, 3) + t  # (P, V, 3)
+        x, y, z = xc.unbind(-1)
+        iz = 1.0 / torch.where(z.abs() < 1e-12, 1e-12, z)
+        k00, k01, k02, k11, k12 = K[:, 0, 0], K[:, 0, 1], K[:, 0, 2], K[:, 1, 1], K[:, 1, 2]
+        xn, yn = x * iz, y * iz
+        u = torch.addcmul(torch.addcmul(k02, k00, xn), k01, yn)
+        v = torch.addcmul(k12, k11, yn)
+        nn2 = torch.addcmul(torch.addcmul(x * x, y, y), z, z)
+        zc = z.clamp_min(near)
+        # f r / zc (|x_c| / zc)^(1/2), per metre of sphere radius
+        q = 0.5 * (k00 + k11) / zc * (nn2.sqrt() / zc).sqrt()
+        rad = (q.view(-1, C, 2, V) * radius.view(1, C, 1, 1)).view(-1, V)
+        front = z > near
+
+        def layout(f, end):  # (P, V) with P = (..., C, 2) -> (..., V, C) at one end
+            return f.view(-1, C, 2, V)[:, :, end].transpose(1, 2).reshape(*batch, V, C)
+
+        pa = torch.stack([layout(u, 0), layout(v, 0)], -1)
+        pb = torch.stack([layout(u, 1), layout(v, 1)], -1)
+        valid = layout(front, 0) & layout(front, 1)
+        ctx.save_for_backward(R, k00, k01, k11, iz, u - k02, v - k12, x, y, z, nn2, rad, q, front)
+        ctx.shape = (batch, C, V)
+        ctx.mark_non_differentiable(valid)
+        return pa, pb, layout(rad, 0), layout(rad, 1), valid
+
+    @staticmethod
+    def backward(ctx, g_pa, g_pb, g_ra, g_rb, _):
+        R, k00, k01, k11, iz, du, dv, x, y, z, nn2, rad, q, front = ctx.saved_tensors
+        batch, C, V = ctx.shape
+        zero = torch.zeros((), dtype=x.dtype, device=x.device)
+
+        def pose_major(a, b):  # (..., V, C) pairs -> (P, V) with P = (..., C, 2)
+            a = a if a is not None else zero.expand(*batch, V, C)
+            b = b if b is not None else zero.expand(*batch, V, C)
+            return torch.stack([a, b], -1).reshape(-1, V, C, 2).permute(0, 2, 3, 1).reshape(-1, V)
+
+        if g_pa is None:
+            g_pa = zero.expand(*batch, V, C, 2)
+        if g_pb is None:
+            g_pb = zero.expand(*batch, V, C, 2)
+        gu, gv = pose_major(g_pa[..., 0], g_pb[..., 0]), pose_major(g_pa[..., 1], g_pb[..., 1])
+        gr = pose_major(g_ra, g_rb)
+        # u = k00 x / z + k01 y / z + k02, v = k11 y / z + k12; rad = q r, q ~ |x_c|^(1/2) zc^(-3/2)
+        a = gr * rad * 0.5 / nn2
+        gx = torch.addcmul(a * x, gu * k00, iz)
+        gy = torch.addcmul(a * y, torch.addcmul(gu * k01, gv, k11), iz)
+        gz = torch.addcmul(a * z, torch.addcmul(gu * du, gv, dv), iz, value=-1.0)
+        gz = gz - 1.5 * gr * rad * front / z.clamp_min(1e-30)
+        g_xc = torch.stack([gx, gy, gz], -1).view(-1, V * 3)
+        g_ends = (g_xc @ R.permute(2, 0, 1).reshape(3, V * 3).t()).view(*batch, C, 2, 3)
+        g_radius = None
+        if ctx.needs_input_grad[1]:
+            g_radius = (gr * q).view(-1, C, 2 * V).sum((0, 2))
+        return g_ends, g_radius, None, None, None, None
 
 
 def _uneven_capsule_sdf(p, pa, pb, ra, rb):
@@ -174,7 +245,7 @@ def _nearest_capsules(pts, fields, valid, C: int) -> tuple[torch.Tensor, torch.T
         parts = []
         for r0 in range(0, R, n):
             rows = slice(r0 * C, min(R, r0 + n) * C)
-            sdf = _capsule_sdf(pts, *(f[:, rows] for f in fields)).masked_fill_(~valid[:, rows], math.inf)
+            sdf = _capsule_sdf(pts, *(f[:, rows] for f in fields), valid[:, rows])
             parts.append(sdf.view(G, -1, C, sdf.shape[-1]).min(-2))
         best = torch.cat([b for b, _ in parts], 1) if len(parts) > 1 else parts[0][0]  # (G, R, P)
         nearest = torch.cat([i for _, i in parts], 1) if len(parts) > 1 else parts[0][1]
@@ -212,19 +283,28 @@ def _nearest_axis_distance(pts, fields, nearest, best):
     return d, {**terms, "inv_ee": inv_ee, "s": s, "t": t, "qx": qx, "qy": qy, "qq": qq}
 
 
-def _capsule_sdf(pts, pa, pb, ra, rb) -> torch.Tensor:
+def _capsule_sdf(pts, pa, pb, ra, rb, valid) -> torch.Tensor:
     """Signed distance (pixels) of points ``pts`` (G, P, 2) to capsules ``pa``, ``pb`` (G, K, 2), ``ra``,
-    ``rb`` (G, K, 1): (G, K, P), with ``|p - a|^2`` and ``(p - a) . e`` from matrix products; in place
-    (no autograd)."""
+    ``rb`` (G, K, 1): (G, K, P), ``inf`` where not ``valid`` (G, K, 1). ``|p - a|^2`` and the axis
+    parameter ``s = (p - a) . e / |e|^2`` are two matrix products (rows ``x, y, x^2 + y^2, 1`` of the
+    points), then ``|p - a - t e|^2 = |p - a|^2 + |e|^2 t (t - 2 s)``: a dozen passes over (G, K, P), in
+    place (no autograd)."""
     e = pb - pa
     ee = (e * e).sum(-1, keepdim=True)  # (G, K, 1)
-    inv = torch.where(ee > 1e-12, 1.0 / ee.clamp_min(1e-12), torch.zeros_like(ee))
-    pt = pts.transpose(-1, -2)  # (G, 2, P)
-    qa = (pa @ pt).mul_(-2).add_((pa * pa).sum(-1, keepdim=True)).add_((pts * pts).sum(-1).unsqueeze(-2))
-    s = (e @ pt).sub_((pa * e).sum(-1, keepdim=True)).mul_(inv)  # the axis parameter of p, unclamped
+    inv = torch.where(ee > 1e-12, 1.0 / ee.clamp_min(1e-12), 0.0)
+    one = torch.ones_like(ee)
+    # an invalid capsule is infinitely far from every point
+    aa = (pa * pa).sum(-1, keepdim=True).masked_fill_(~valid, math.inf)
+    A_uu = torch.cat([-2 * pa, one, aa], -1)
+    A_s = torch.cat([e * inv, 0 * one, -(pa * e).sum(-1, keepdim=True) * inv], -1)
+    PtT = torch.cat([pts, (pts * pts).sum(-1, keepdim=True), torch.ones_like(pts[..., :1])], -1).transpose(
+        -1, -2
+    )
+    qa = torch.bmm(A_uu, PtT)  # |p - a|^2
+    s = torch.bmm(A_s, PtT)
     t = s.clamp(0.0, 1.0)
-    d2 = s.mul_(-2).add_(t).mul_(t).mul_(ee).add_(qa).clamp_min_(1e-12)  # |p - a - t e|^2
-    return d2.sqrt_().sub_(t.mul_(rb - ra).add_(ra))
+    d2 = qa.addcmul_(torch.add(t, s, alpha=-2.0).mul_(t), ee).clamp_min_(1e-12)  # |p - a - t e|^2
+    return d2.sqrt_().sub_(torch.addcmul(ra, t, rb - ra))
 
 
 def _point_groups(points: torch.Tensor, batch: torch.Size) -> tuple[int, int, torch.Tensor]:
