@@ -164,11 +164,11 @@ class _RigProjection(torch.autograd.Function):
         gy = torch.addcmul(a * y, torch.addcmul(gu * k01, gv, k11), iz)
         gz = torch.addcmul(a * z, torch.addcmul(gu * du, gv, dv), iz, value=-1.0)
         gz = gz - 1.5 * gr * rad * front / z.clamp_min(1e-30)
-        g_xc = torch.stack([gx, gy, gz], -1).view(-1, V * 3)
+        g_xc = torch.stack([gx, gy, gz], -1).reshape(-1, V * 3)
         g_ends = (g_xc @ R.permute(2, 0, 1).reshape(3, V * 3).t()).view(*batch, C, 2, 3)
         g_radius = None
         if ctx.needs_input_grad[1]:
-            g_radius = (gr * q).view(-1, C, 2 * V).sum((0, 2))
+            g_radius = (gr * q).reshape(-1, C, 2 * V).sum((0, 2))
         return g_ends, g_radius, None, None, None, None
 
 
