@@ -35,9 +35,9 @@ from torch import Tensor
 
 from torchpf.geometry.projected import (
     Capsules2D,
+    _area_points,
     _nearest_axis_distance,
     _nearest_capsules,
-    _point_coordinates,
 )
 
 __all__ = ["capsule_chamfer"]
@@ -118,14 +118,9 @@ def _chamfer(pa, pb, ra, rb, valid, image, fg, tau: float, n_body: int, n_cap: i
 def _model_term(pa, pb, ra, rb, valid, image, tau: float, n_body: int, n_cap: int, grad: bool):
     """``sum_i w_i rho(d_mask(p_i)) / sum_i w_i`` (G, N) and its gradient (G, N, C, 6) or None."""
     G, N, C = valid.shape
-    ax, ay = pa.unbind(-1)
-    ex, ey = (pb - pa).unbind(-1)
-    L = torch.hypot(ex, ey).clamp_min(1e-9)
-    alpha, beta, w, *der = _point_coordinates(L, ra, rb, valid, n_body, n_cap, derivatives=grad)
+    px, py, k = _area_points(Capsules2D(pa, pb, ra, rb, valid), n_body, n_cap, derivatives=grad)
+    ex, ey, L, alpha, beta, w = k["ex"], k["ey"], k["L"], k["alpha"], k["beta"], k["w"]
     exu, eyu = ex.unsqueeze(-1), ey.unsqueeze(-1)
-    # p = pa + alpha e + beta n, n = (-e_y, e_x): (G, N, C, M) each
-    px = torch.addcmul(torch.addcmul(ax.unsqueeze(-1), alpha, exu), beta, eyu, value=-1.0)
-    py = torch.addcmul(torch.addcmul(ay.unsqueeze(-1), alpha, eyu), beta, exu)
     M = px.shape[-1]
     value, gx, gy = _distance_lookup(image, px.view(G, -1), py.view(G, -1), grad)
     value = value.view(G, N, C, M)
@@ -137,8 +132,8 @@ def _model_term(pa, pb, ra, rb, valid, image, tau: float, n_body: int, n_cap: in
         return model, None
     inv = (1.0 / Wc)[..., None, None]
     # d model / d p_i and d model / d w_i (G, N, C, M); (all weights 0: the model term is 0 either way)
-    k = torch.where(value <= tau, d, 0.0) * (2 * inv) * w
-    g_px, g_py = k * gx.view(G, N, C, M), k * gy.view(G, N, C, M)
+    slope = torch.where(value <= tau, d, 0.0) * (2 * inv) * w
+    g_px, g_py = slope * gx.view(G, N, C, M), slope * gy.view(G, N, C, M)
     g_w = (f - model[..., None, None]) * inv
     s_e = torch.addcmul(g_px * exu, g_py, eyu)  # g . e
     s_n = torch.addcmul(g_py * exu, g_px, eyu, value=-1.0)  # g . n
@@ -147,7 +142,7 @@ def _model_term(pa, pb, ra, rb, valid, image, tau: float, n_body: int, n_cap: in
     g_ey = (alpha * g_py - beta * g_px).sum(-1)
     # alpha, beta and w through ra, rb and L
     vec = torch.cat([s_e, s_n, g_w], -1)
-    g_ra, g_rb, g_L = ((vec * c).sum(-1) for c in der[0])
+    g_ra, g_rb, g_L = ((vec * c).sum(-1) for c in k["der"])
     g_L = g_L / L
     g_ex, g_ey = torch.addcmul(g_ex, g_L, ex), torch.addcmul(g_ey, g_L, ey)
     g_ax, g_ay = g_px.sum(-1) - g_ex, g_py.sum(-1) - g_ey

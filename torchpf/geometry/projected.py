@@ -431,14 +431,28 @@ def sample_in_capsules(
         weights: (..., C * M) pixel area per point (0 for invalid capsules); their sum over a capsule is
         its area, differentiable with respect to the capsule parameters.
     """
-    e = caps.pb - caps.pa
-    n = torch.stack([-e[..., 1], e[..., 0]], -1)
-    L = e.norm(dim=-1).clamp_min(1e-9)
-    alpha, beta, w = _point_coordinates(L, caps.ra, caps.rb, caps.valid, n_body, n_cap, generator)
-    pts = torch.addcmul(caps.pa.unsqueeze(-2), alpha.unsqueeze(-1), e.unsqueeze(-2))
-    pts = torch.addcmul(pts, beta.unsqueeze(-1), n.unsqueeze(-2))  # (..., C, M, 2)
-    batch, C, M = caps.pa.shape[:-2], pts.shape[-3], pts.shape[-2]
-    return pts.reshape(*batch, C * M, 2), w.reshape(*batch, C * M)
+    px, py, k = _area_points(caps, n_body, n_cap, generator)
+    batch = caps.pa.shape[:-2]
+    return torch.stack([px, py], -1).reshape(*batch, -1, 2), k["w"].reshape(*batch, -1)
+
+
+def _area_points(caps: Capsules2D, n_body: int, n_cap: int, generator=None, derivatives: bool = False):
+    """The points of :func:`sample_in_capsules` as x and y coordinates ``px``, ``py`` (..., C, M) (separate
+    tensors: a pass over a trailing dim of size 2 costs several plain ones) and the terms of
+    :func:`_point_coordinates` by name: the axis ``ex``, ``ey`` and its length ``L`` (..., C), ``alpha``,
+    ``beta``, ``w`` and, with ``derivatives``, ``der``."""
+    ax, ay = caps.pa.unbind(-1)
+    ex, ey = (caps.pb - caps.pa).unbind(-1)
+    L = torch.hypot(ex, ey).clamp_min(1e-9)
+    alpha, beta, w, *der = _point_coordinates(
+        L, caps.ra, caps.rb, caps.valid, n_body, n_cap, generator, derivatives
+    )
+    exu, eyu = ex.unsqueeze(-1), ey.unsqueeze(-1)
+    # p = pa + alpha e + beta n with n = (-e_y, e_x)
+    px = torch.addcmul(torch.addcmul(ax.unsqueeze(-1), alpha, exu), beta, eyu, value=-1.0)
+    py = torch.addcmul(torch.addcmul(ay.unsqueeze(-1), alpha, eyu), beta, exu)
+    k = {"ex": ex, "ey": ey, "L": L, "alpha": alpha, "beta": beta, "w": w, "der": der[0] if der else None}
+    return px, py, k
 
 
 def _point_coordinates(L, ra, rb, valid, n_body: int, n_cap: int, generator=None, derivatives: bool = False):
