@@ -182,12 +182,17 @@ def _cover_term(pa, pb, ra, rb, valid, fg, tau: float, grad: bool):
 def _distance_lookup(image, px, py, grad: bool):
     """Bilinear look-up of distance images (G, H, W) at pixel coords ``px``, ``py`` (G, P) (pixel centres
     at integers), continued outside the image by the distance to it (the value at the nearest border pixel
-    plus that distance: what ``grid_sample(..., padding_mode="border")`` plus the offset gives); returns
-    the values (G, P) and, with ``grad``, their gradient in ``px`` and ``py`` (G, P each), else Nones."""
+    plus that distance: ``grid_sample(..., padding_mode="border")`` plus the offset); returns the values
+    (G, P) and, with ``grad``, their gradient in ``px`` and ``py`` (G, P each; the value and the slope from
+    the four corners, gathered once), else Nones."""
     G, H, W = image.shape
     ix, iy = px.clamp(0.0, W - 1.0), py.clamp(0.0, H - 1.0)
     ox, oy = px - ix, py - iy
     oo = torch.addcmul(ox * ox, oy, oy)
+    if not grad:  # the value alone: one grid_sample (pixel centres at integers, align_corners=False)
+        grid = torch.stack([ix.mul(2.0 / W).add_(1.0 / W - 1.0), iy.mul(2.0 / H).add_(1.0 / H - 1.0)], -1)
+        v = F.grid_sample(image.unsqueeze(1), grid.unsqueeze(1), padding_mode="border", align_corners=False)
+        return v.view(G, -1) + oo.sqrt(), None, None
     if H < 2 or W < 2:  # a one-pixel-wide image: its border replicated, so both neighbours exist
         image = F.pad(image.unsqueeze(1), (0, int(W < 2), 0, int(H < 2)), mode="replicate").squeeze(1)
         H, W = image.shape[-2:]
@@ -201,8 +206,6 @@ def _distance_lookup(image, px, py, grad: bool):
     top = torch.addcmul(v00, fx, dx0)
     dy = torch.addcmul(v10, fx, dx1) - top
     value = torch.addcmul(top, fy, dy) + oo.sqrt()
-    if not grad:
-        return value, None, None
     # inside the image (no offset along an axis) the bilinear slope, outside the offset's direction
     r_inv = oo.clamp_min(1e-12).rsqrt()
     gx = torch.where(ox == 0, torch.addcmul(dx0, fy, dx1 - dx0), ox * r_inv)

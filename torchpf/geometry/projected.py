@@ -83,12 +83,12 @@ def project_capsules(camera, a: torch.Tensor, b: torch.Tensor, radius: torch.Ten
         (pixels) at each end's depth ``z`` and angle ``t`` off the optical axis: the perspective image of a
         sphere is an ellipse, this circle has its area (exact on the optical axis).
     """
-    ends = torch.stack([a, b], -2)  # (..., C, 2, 3)
-    K, R, t, dist = camera._params(ends)
-    if isinstance(camera, CameraRig) and dist is None and not (torch.is_grad_enabled() and K.requires_grad):
-        if not (torch.is_grad_enabled() and (R.requires_grad or t.requires_grad)):
-            pa, pb, ra, rb, valid = _RigProjection.apply(ends, radius.to(ends), K, R, t, float(near))
+    K, R, t, dist = camera._params(a)
+    if isinstance(camera, CameraRig) and dist is None and a.shape == b.shape:
+        if not (torch.is_grad_enabled() and (K.requires_grad or R.requires_grad or t.requires_grad)):
+            pa, pb, ra, rb, valid = _RigProjection.apply(a, b, radius.to(a), K, R, t, float(near))
             return Capsules2D(pa, pb, ra, rb, valid)
+    ends = torch.stack([a, b], -2)  # (..., C, 2, 3)
     xc = camera.to_camera(ends)
     uv = _camera_to_pixels(xc, K, dist)  # camera.project(ends), from the camera-frame points
     focal = camera.focal
@@ -110,16 +110,17 @@ class _RigProjection(torch.autograd.Function):
     projection's derivatives (perspective division and the radius ``f r |x_c|^(1/2) z^(-3/2)``), the
     backward maps the capsules' gradient to the ends (and radii) with them, instead of back-propagating
     through some forty small operations (a refinement step's cost, :mod:`torchpf.refine`). Same values as
-    the general path."""
+    the general path. Everything runs in the output's layout ``(B, V, 2 C)`` (pose, camera, capsule end)."""
 
     @staticmethod
-    def forward(ctx, ends, radius, K, R, t, near: float):
-        # ends (..., C, 2, 3), radius (C,), K, R (V, 3, 3), t (V, 3); runs without a graph (autograd.Function)
-        batch, C, V = ends.shape[:-3], ends.shape[-3], R.shape[0]
-        xc = (ends.reshape(-1, 3) @ R.permute(2, 0, 1).reshape(3, V * 3)).view(-1, V, 3) + t  # (P, V, 3)
+    def forward(ctx, a, b, radius, K, R, t, near: float):
+        # a, b (..., C, 3), radius (C,), K, R (V, 3, 3), t (V, 3); runs without a graph (autograd.Function)
+        batch, C, V = a.shape[:-2], a.shape[-2], R.shape[0]
+        ends = torch.stack([a, b], -2).reshape(-1, 1, 2 * C, 3)
+        xc = torch.matmul(ends, R.transpose(-1, -2)) + t.view(V, 1, 3)  # (B, V, 2 C, 3)
         x, y, z = xc.unbind(-1)
         iz = 1.0 / torch.where(z.abs() < 1e-12, 1e-12, z)
-        k00, k01, k02, k11, k12 = K[:, 0, 0], K[:, 0, 1], K[:, 0, 2], K[:, 1, 1], K[:, 1, 2]
+        k00, k01, k02, k11, k12 = (K[:, i, j].view(V, 1) for i, j in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2)))
         xn, yn = x * iz, y * iz
         u = torch.addcmul(torch.addcmul(k02, k00, xn), k01, yn)
         v = torch.addcmul(k12, k11, yn)
@@ -127,49 +128,46 @@ class _RigProjection(torch.autograd.Function):
         zc = z.clamp_min(near)
         # f r / zc (|x_c| / zc)^(1/2), per metre of sphere radius
         q = 0.5 * (k00 + k11) / zc * (nn2.sqrt() / zc).sqrt()
-        rad = (q.view(-1, C, 2, V) * radius.view(1, C, 1, 1)).view(-1, V)
+        rad = q * radius.view(C, 1).expand(C, 2).reshape(2 * C)
         front = z > near
-
-        def layout(f, end):  # (P, V) with P = (..., C, 2) -> (..., V, C) at one end
-            return f.view(-1, C, 2, V)[:, :, end].transpose(1, 2).reshape(*batch, V, C)
-
-        pa = torch.stack([layout(u, 0), layout(v, 0)], -1)
-        pb = torch.stack([layout(u, 1), layout(v, 1)], -1)
-        valid = layout(front, 0) & layout(front, 1)
-        ctx.save_for_backward(R, k00, k01, k11, iz, u - k02, v - k12, x, y, z, nn2, rad, q, front)
+        uv = torch.stack([u, v], -1).view(-1, V, C, 2, 2)
+        rad4, front4 = rad.view(-1, V, C, 2), front.view(-1, V, C, 2)
+        ctx.save_for_backward(R, k00, k01, k11, iz, u - k02, v - k12, xc, nn2, rad, q, zc, front)
         ctx.shape = (batch, C, V)
+        valid = (front4[..., 0] & front4[..., 1]).reshape(*batch, V, C)
         ctx.mark_non_differentiable(valid)
-        return pa, pb, layout(rad, 0), layout(rad, 1), valid
+        return (
+            uv[..., 0, :].reshape(*batch, V, C, 2),
+            uv[..., 1, :].reshape(*batch, V, C, 2),
+            rad4[..., 0].reshape(*batch, V, C),
+            rad4[..., 1].reshape(*batch, V, C),
+            valid,
+        )
 
     @staticmethod
     def backward(ctx, g_pa, g_pb, g_ra, g_rb, _):
-        R, k00, k01, k11, iz, du, dv, x, y, z, nn2, rad, q, front = ctx.saved_tensors
+        R, k00, k01, k11, iz, du, dv, xc, nn2, rad, q, zc, front = ctx.saved_tensors
         batch, C, V = ctx.shape
-        zero = torch.zeros((), dtype=x.dtype, device=x.device)
-
-        def pose_major(a, b):  # (..., V, C) pairs -> (P, V) with P = (..., C, 2)
-            a = a if a is not None else zero.expand(*batch, V, C)
-            b = b if b is not None else zero.expand(*batch, V, C)
-            return torch.stack([a, b], -1).reshape(-1, V, C, 2).permute(0, 2, 3, 1).reshape(-1, V)
-
-        if g_pa is None:
-            g_pa = zero.expand(*batch, V, C, 2)
-        if g_pb is None:
-            g_pb = zero.expand(*batch, V, C, 2)
-        gu, gv = pose_major(g_pa[..., 0], g_pb[..., 0]), pose_major(g_pa[..., 1], g_pb[..., 1])
-        gr = pose_major(g_ra, g_rb)
+        x, y, z = xc.unbind(-1)
+        shape = (*batch, V, C)
+        g_pa = g_pa if g_pa is not None else x.new_zeros(*shape, 2)
+        g_pb = g_pb if g_pb is not None else x.new_zeros(*shape, 2)
+        g_ra = g_ra if g_ra is not None else x.new_zeros(shape)
+        g_rb = g_rb if g_rb is not None else x.new_zeros(shape)
+        gu, gv = torch.stack([g_pa, g_pb], -2).reshape(-1, V, 2 * C, 2).unbind(-1)
+        gr = torch.stack([g_ra, g_rb], -1).reshape(-1, V, 2 * C)
         # u = k00 x / z + k01 y / z + k02, v = k11 y / z + k12; rad = q r, q ~ |x_c|^(1/2) zc^(-3/2)
-        a = gr * rad * 0.5 / nn2
-        gx = torch.addcmul(a * x, gu * k00, iz)
-        gy = torch.addcmul(a * y, torch.addcmul(gu * k01, gv, k11), iz)
-        gz = torch.addcmul(a * z, torch.addcmul(gu * du, gv, dv), iz, value=-1.0)
-        gz = gz - 1.5 * gr * rad * front / z.clamp_min(1e-30)
-        g_xc = torch.stack([gx, gy, gz], -1).reshape(-1, V * 3)
-        g_ends = (g_xc @ R.permute(2, 0, 1).reshape(3, V * 3).t()).view(*batch, C, 2, 3)
+        half = gr * rad * 0.5 / nn2
+        gx = torch.addcmul(half * x, gu * k00, iz)
+        gy = torch.addcmul(half * y, torch.addcmul(gu * k01, gv, k11), iz)
+        gz = torch.addcmul(half * z, torch.addcmul(gu * du, gv, dv), iz, value=-1.0)
+        gz = torch.addcmul(gz, gr * rad * front, 1.0 / zc, value=-1.5)
+        # x_c = R X + t: the ends' gradient is sum over cameras of R^T g
+        g_ends = torch.matmul(torch.stack([gx, gy, gz], -1), R).sum(1).view(*batch, C, 2, 3)
         g_radius = None
-        if ctx.needs_input_grad[1]:
-            g_radius = (gr * q).reshape(-1, C, 2 * V).sum((0, 2))
-        return g_ends, g_radius, None, None, None, None
+        if ctx.needs_input_grad[2]:
+            g_radius = (gr * q).view(-1, V, C, 2).sum((0, 1, 3))
+        return g_ends[..., 0, :], g_ends[..., 1, :], g_radius, None, None, None, None
 
 
 def _uneven_capsule_sdf(p, pa, pb, ra, rb):
