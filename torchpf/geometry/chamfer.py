@@ -130,7 +130,7 @@ def _model_term(pa, pb, ra, rb, valid, image, tau: float, n_body: int, n_cap: in
     model = (w * f).sum((-2, -1)) / Wc
     if not grad:
         return model, None
-    inv = (1.0 / Wc)[..., None, None]
+    inv = Wc.reciprocal()[..., None, None]
     # d model / d p_i and d model / d w_i (G, N, C, M); (all weights 0: the model term is 0 either way)
     slope = torch.where(value <= tau, d, 0.0) * (2 * inv) * w
     g_px, g_py = slope * gx.view(G, N, C, M), slope * gy.view(G, N, C, M)

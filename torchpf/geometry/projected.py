@@ -119,7 +119,7 @@ class _RigProjection(torch.autograd.Function):
         ends = torch.stack([a, b], -2).reshape(-1, 1, 2 * C, 3)
         xc = torch.matmul(ends, R.transpose(-1, -2)) + t.view(V, 1, 3)  # (B, V, 2 C, 3)
         x, y, z = xc.unbind(-1)
-        iz = 1.0 / torch.where(z.abs() < 1e-12, 1e-12, z)
+        iz = torch.where(z.abs() < 1e-12, 1e-12, z).reciprocal()
         k00, k01, k02, k11, k12 = (K[:, i, j].view(V, 1) for i, j in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2)))
         xn, yn = x * iz, y * iz
         u = torch.addcmul(torch.addcmul(k02, k00, xn), k01, yn)
@@ -161,7 +161,7 @@ class _RigProjection(torch.autograd.Function):
         gx = torch.addcmul(half * x, gu * k00, iz)
         gy = torch.addcmul(half * y, torch.addcmul(gu * k01, gv, k11), iz)
         gz = torch.addcmul(half * z, torch.addcmul(gu * du, gv, dv), iz, value=-1.0)
-        gz = torch.addcmul(gz, gr * rad * front, 1.0 / zc, value=-1.5)
+        gz = torch.addcmul(gz, gr * rad * front, zc.reciprocal(), value=-1.5)
         # x_c = R X + t: the ends' gradient is sum over cameras of R^T g
         g_ends = torch.matmul(torch.stack([gx, gy, gz], -1), R).sum(1).view(*batch, C, 2, 3)
         g_radius = None
@@ -270,7 +270,7 @@ def _nearest_axis_distance(pts, fields, nearest, best):
     dx, dy = p[..., 0] - ax, p[..., 1] - ay
     ex, ey = bx - ax, by - ay
     ee = torch.addcmul(ex * ex, ey, ey)
-    inv_ee = torch.where(ee > 1e-12, 1.0 / ee.clamp_min(1e-12), 0.0)
+    inv_ee = torch.where(ee > 1e-12, ee.clamp_min(1e-12).reciprocal(), 0.0)
     s = torch.addcmul(dx * ex, dy, ey) * inv_ee  # the axis parameter of p
     t = s.clamp(0.0, 1.0)
     qx, qy = dx - t * ex, dy - t * ey
@@ -289,7 +289,7 @@ def _capsule_sdf(pts, pa, pb, ra, rb, valid) -> torch.Tensor:
     place (no autograd)."""
     e = pb - pa
     ee = (e * e).sum(-1, keepdim=True)  # (G, K, 1)
-    inv = torch.where(ee > 1e-12, 1.0 / ee.clamp_min(1e-12), 0.0)
+    inv = torch.where(ee > 1e-12, ee.clamp_min(1e-12).reciprocal(), 0.0)
     one = torch.ones_like(ee)
     # an invalid capsule is infinitely far from every point
     aa = (pa * pa).sum(-1, keepdim=True).masked_fill_(~valid, math.inf)
@@ -464,7 +464,7 @@ def _point_coordinates(L, ra, rb, valid, n_body: int, n_cap: int, generator=None
     Jacobian in the capsule, :func:`torchpf.geometry.capsule_chamfer`)."""
     batch = L.shape
     u, h, cos_c, sin_c = _unit_samples(n_body, n_cap, generator, L.dtype, L.device, tuple(batch))
-    inv = (1.0 / L).unsqueeze(-1)
+    inv = L.reciprocal().unsqueeze(-1)  # (reciprocal: 1.0 / tensor dispatches through Python)
     # Body: t has density proportional to r(t) = ra + t (rb - ra) (inverse CDF of a linear density:
     # ra t + qa t^2 = qc), the offset across the axis is (2 s - 1) r(t).
     ra_, rb_ = ra.unsqueeze(-1), rb.unsqueeze(-1)
@@ -505,7 +505,7 @@ def _point_coordinates(L, ra, rb, valid, n_body: int, n_cap: int, generator=None
             t_ra,
             -cos_a * inv,
             zc,
-            hi * (1 - t + (rb_ - ra_) * t_ra),
+            hi * (torch.rsub(t, 1.0) + (rb_ - ra_) * t_ra),
             sin_a * inv,
             zc,
             wb,
@@ -646,7 +646,7 @@ def _coverage_chunk(a, b, ra, rb, valid, own, PtT, softness: float, reduce: str)
     g, r, C = a.shape[:3]
     e = b - a
     ee = (e * e).sum(-1, keepdim=True)  # (g, r, C, 1)
-    inv = torch.where(ee > 1e-12, 1.0 / ee.clamp_min(1e-12), torch.zeros_like(ee))
+    inv = torch.where(ee > 1e-12, ee.clamp_min(1e-12).reciprocal(), torch.zeros_like(ee))
     one = torch.ones_like(ee)
     aa = (a * a).sum(-1, keepdim=True)
     if softness <= 0:  # an invalid capsule is infinitely far from every point
