@@ -2,14 +2,18 @@
 evaluations per frame, 3 cameras, 160x120 masks, one torch thread).
 
 One CMU clip is rendered by the foreign renderer (:func:`benchmarks.foreign.build_sequence`, as
-``python -m benchmarks.evaluate --renderer foreign`` does) and, in one process, the script times per frame:
+``python -m benchmarks.evaluate --renderer foreign`` does), the converted skeleton's body is fitted to frame
+0 once (:func:`torchpf.detect.fit_body_to_frame`, what ``track`` would do at its start: outside the timing,
+so the rows are the per-frame step) and, in one process, the script times per frame:
 
-* ``apf``: the default tracker, ``Tracker(skel, cameras, n_particles=500, fps=30)`` (APF, ``silhouette`` +
+* ``apf``: ``Tracker(skel, cameras, n_particles=500, fps=30, filter="apf")`` (APF, ``silhouette`` +
   ``dual_silhouette``, structural random walk, recovery on), the whole :meth:`~torchpf.Tracker.track`
   loop (masks read from disk included); ``apf, no recovery``: the same without the lost-track detector;
-* ``hybrid``: ``filter="hybrid"`` (APF layers, then projected Adam on ``K = 4`` poses);
+* ``hybrid``: ``filter="hybrid"``, the default of ``track`` (APF layers, then projected Adam on ``K = 4``
+  poses);
 * ``refine``: :class:`~torchpf.refine.Refiner` alone (the hybrid's default: 20 steps, ``K = 4`` poses near
-  the truth) on each frame's fresh observation (its per-frame caches, the despeckled masks and distance
+  the truth; ``--refine-steps 10,15`` adds rows with other step counts, for the hybrid too, at the same
+  budget) on each frame's fresh observation (its per-frame caches, the despeckled masks and distance
   images, built inside the timing as in tracking);
 * one likelihood evaluation of 500 particles for each image cue (caches warm, as in the 2nd-Lth APF layer),
   median over the frames.
@@ -65,9 +69,11 @@ def _track_row(tracker, seq_dir: Path, frames: int, warmup) -> dict:
     return {"cpu": clocks.cpu / frames, "wall": clocks.wall / frames, "evals": result.likelihood_evaluations}
 
 
-def measure(clip: str, work: Path, frames: int, repeat: int, paths) -> dict[str, dict]:
-    """Per-frame seconds ``{path: {"cpu", "wall", "evals"}}`` of the paths named in ``paths``."""
+def measure(clip: str, work: Path, frames: int, repeat: int, paths, refine_steps=()) -> dict[str, dict]:
+    """Per-frame seconds ``{path: {"cpu", "wall", "evals"}}`` of the paths named in ``paths``; the hybrid
+    and the refinement also with each number of gradient steps in ``refine_steps`` (default 20)."""
     from benchmarks.foreign import build_sequence
+    from torchpf.detect import fit_body_to_frame
     from torchpf.likelihoods import LIKELIHOODS
     from torchpf.refine import Refiner
     from torchpf.sequence import read_sequence
@@ -75,9 +81,12 @@ def measure(clip: str, work: Path, frames: int, repeat: int, paths) -> dict[str,
     from torchpf.tracker import Tracker
 
     seq = build_sequence(CMU_DIR / f"{clip}.bvh", work / f"{clip}-clean", defects="clean", frames=frames)
-    skel = Skeleton.from_urdf(str(seq.skeleton_path))
     data = read_sequence(seq.path)
     T = len(data)
+    # the body track() would fit to frame 0 (the converted skeleton looks uncalibrated), fitted once here so
+    # that the rows time the per-frame step, not the fit, and every row runs on the same body
+    skel = Skeleton.from_urdf(str(seq.skeleton_path))
+    skel, _ = fit_body_to_frame(skel, data.cameras, data.frame(0), data.truth_in(skel.dof_names)[0].double())
     truth = data.truth_in(skel.dof_names).float()
     warmup = {"frames": [data.frame(t) for t in range(2)], "init": truth[0].double()}
     rows: dict[str, dict] = {}
@@ -86,14 +95,19 @@ def measure(clip: str, work: Path, frames: int, repeat: int, paths) -> dict[str,
         return Tracker(skel, data.cameras, n_particles=500, fps=30, progress=False, **options)
 
     if "apf" in paths:
-        rows["apf"] = _track_row(tracker(), seq.path, T, warmup)
-        rows["apf, no recovery"] = _track_row(tracker(recovery=False), seq.path, T, warmup)
+        rows["apf"] = _track_row(tracker(filter="apf"), seq.path, T, warmup)
+        rows["apf, no recovery"] = _track_row(tracker(filter="apf", recovery=False), seq.path, T, warmup)
     if "hybrid" in paths:
         rows["hybrid"] = _track_row(tracker(filter="hybrid"), seq.path, T, warmup)
+        for steps in refine_steps:  # the same budget: fewer steps leave the APF layers more particles
+            options = {"filter_options": {"refine_options": {"steps": steps}}}
+            rows[f"hybrid, {steps} steps"] = _track_row(
+                tracker(filter="hybrid", **options), seq.path, T, warmup
+            )
     g = torch.Generator().manual_seed(0)
     spread = torch.where(skel.dof_revolute, 0.05, 0.02).float()
-    if "refine" in paths:
-        refiner = Refiner(skel, data.cameras)
+    for steps in (20, *refine_steps) if "refine" in paths else ():
+        refiner = Refiner(skel, data.cameras, steps=steps)
         refiner(truth[:1].expand(4, -1).clone(), data.frame(0).silhouettes)  # warm-up
         clocks = _Clocks()
         for t in range(T):
@@ -101,7 +115,7 @@ def measure(clip: str, work: Path, frames: int, repeat: int, paths) -> dict[str,
             obs = data.frame(t).silhouettes  # fresh: its caches are built inside the timing, as in tracking
             with clocks:
                 refiner(x, obs)
-        rows["refine (K=4, 20 steps)"] = {
+        rows[f"refine (K=4, {steps} steps)"] = {
             "cpu": clocks.cpu / T,
             "wall": clocks.wall / T,
             "evals": refiner.evaluations(4),
@@ -159,6 +173,11 @@ def main(argv=None) -> int:
         "--paths", default="apf,hybrid,refine,cues", help="comma list of apf, hybrid, refine, cues"
     )
     p.add_argument("--repeat", type=int, default=3, help="timed evaluations per frame (cues)")
+    p.add_argument(
+        "--refine-steps",
+        default="",
+        help="comma list of refinement step counts timed besides the default 20 (hybrid and refine rows)",
+    )
     p.add_argument("--work", default="out/step_speed", help="where the sequence directory is written")
     p.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
     p.add_argument("--clock", choices=["cpu", "wall"], default="cpu")
@@ -175,7 +194,8 @@ def main(argv=None) -> int:
         with open(args.baseline, encoding="utf-8") as f:
             baseline = json.load(f)["rows"]
     print(f"machine: {machine()}; load average {os.getloadavg()[0]:.2f}; clock: {args.clock}")
-    rows = measure(args.clip, Path(args.work), args.frames, args.repeat, paths)
+    refine_steps = [int(x) for x in args.refine_steps.split(",") if x.strip()]
+    rows = measure(args.clip, Path(args.work), args.frames, args.repeat, paths, refine_steps)
     print(f"clip {args.clip} (clean), 3 cameras, 160x120 masks; load average now {os.getloadavg()[0]:.2f}\n")
     print(table(rows, args.clock, baseline))
     if args.save:

@@ -1,6 +1,7 @@
 """Capsule geometry of the body model, in 3-D (:mod:`torchpf.geometry.capsules`: distances, ray casting;
 Hauberg §5) and projected into an image (:mod:`torchpf.geometry.projected`: tapered 2-D capsules, masks,
-sample points, coverage; Fontmarty et al. §3.2.1).
+sample points, coverage; Fontmarty et al. §3.2.1) and its truncated chamfer distance to a silhouette with
+a hand-written gradient (:mod:`torchpf.geometry.chamfer`).
 
 Shapes: ``...`` batch (poses), ``C`` capsules, ``K`` or ``P`` points. Units: metres in 3-D, pixels in 2-D.
 
@@ -12,6 +13,7 @@ Example::
 """
 
 from torchpf.geometry.capsules import capsule_distance, capsule_truncated_cost, raycast_capsules
+from torchpf.geometry.chamfer import capsule_chamfer
 from torchpf.geometry.projected import (
     Capsules2D,
     capsule_coverage,
@@ -25,6 +27,7 @@ from torchpf.geometry.projected import (
 
 __all__ = [
     "Capsules2D",
+    "capsule_chamfer",
     "capsule_coverage",
     "capsule_distance",
     "capsule_masks",

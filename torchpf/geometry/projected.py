@@ -83,8 +83,12 @@ def project_capsules(camera, a: torch.Tensor, b: torch.Tensor, radius: torch.Ten
         (pixels) at each end's depth ``z`` and angle ``t`` off the optical axis: the perspective image of a
         sphere is an ellipse, this circle has its area (exact on the optical axis).
     """
+    K, R, t, dist = camera._params(a)
+    if isinstance(camera, CameraRig) and dist is None and a.shape == b.shape:
+        if not (torch.is_grad_enabled() and (K.requires_grad or R.requires_grad or t.requires_grad)):
+            pa, pb, ra, rb, valid = _RigProjection.apply(a, b, radius.to(a), K, R, t, float(near))
+            return Capsules2D(pa, pb, ra, rb, valid)
     ends = torch.stack([a, b], -2)  # (..., C, 2, 3)
-    K, _, _, dist = camera._params(ends)
     xc = camera.to_camera(ends)
     uv = _camera_to_pixels(xc, K, dist)  # camera.project(ends), from the camera-frame points
     focal = camera.focal
@@ -99,6 +103,71 @@ def project_capsules(camera, a: torch.Tensor, b: torch.Tensor, radius: torch.Ten
     rad = focal * r.unsqueeze(-1) / zc * (xc.norm(dim=-1) / zc).sqrt()
     valid = (z > near).all(-1)
     return Capsules2D(uv[..., 0, :], uv[..., 1, :], rad[..., 0], rad[..., 1], valid)
+
+
+class _RigProjection(torch.autograd.Function):
+    """:func:`project_capsules` into a rig without distortion, as one autograd node: the forward keeps the
+    projection's derivatives (perspective division and the radius ``f r |x_c|^(1/2) z^(-3/2)``), the
+    backward maps the capsules' gradient to the ends (and radii) with them, instead of back-propagating
+    through some forty small operations (a refinement step's cost, :mod:`torchpf.refine`). Same values as
+    the general path. Everything runs in the output's layout ``(B, V, 2 C)`` (pose, camera, capsule end)."""
+
+    @staticmethod
+    def forward(ctx, a, b, radius, K, R, t, near: float):
+        # a, b (..., C, 3), radius (C,), K, R (V, 3, 3), t (V, 3); runs without a graph (autograd.Function)
+        batch, C, V = a.shape[:-2], a.shape[-2], R.shape[0]
+        ends = torch.stack([a, b], -2).reshape(-1, 1, 2 * C, 3)
+        xc = torch.matmul(ends, R.transpose(-1, -2)) + t.view(V, 1, 3)  # (B, V, 2 C, 3)
+        x, y, z = xc.unbind(-1)
+        iz = torch.where(z.abs() < 1e-12, 1e-12, z).reciprocal()
+        k00, k01, k02, k11, k12 = (K[:, i, j].view(V, 1) for i, j in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2)))
+        xn, yn = x * iz, y * iz
+        u = torch.addcmul(torch.addcmul(k02, k00, xn), k01, yn)
+        v = torch.addcmul(k12, k11, yn)
+        nn2 = torch.addcmul(torch.addcmul(x * x, y, y), z, z)
+        zc = z.clamp_min(near)
+        # f r / zc (|x_c| / zc)^(1/2), per metre of sphere radius
+        q = 0.5 * (k00 + k11) / zc * (nn2.sqrt() / zc).sqrt()
+        rad = q * radius.view(C, 1).expand(C, 2).reshape(2 * C)
+        front = z > near
+        uv = torch.stack([u, v], -1).view(-1, V, C, 2, 2)
+        rad4, front4 = rad.view(-1, V, C, 2), front.view(-1, V, C, 2)
+        ctx.save_for_backward(R, k00, k01, k11, iz, u - k02, v - k12, xc, nn2, rad, q, zc, front)
+        ctx.shape = (batch, C, V)
+        valid = (front4[..., 0] & front4[..., 1]).reshape(*batch, V, C)
+        ctx.mark_non_differentiable(valid)
+        return (
+            uv[..., 0, :].reshape(*batch, V, C, 2),
+            uv[..., 1, :].reshape(*batch, V, C, 2),
+            rad4[..., 0].reshape(*batch, V, C),
+            rad4[..., 1].reshape(*batch, V, C),
+            valid,
+        )
+
+    @staticmethod
+    def backward(ctx, g_pa, g_pb, g_ra, g_rb, _):
+        R, k00, k01, k11, iz, du, dv, xc, nn2, rad, q, zc, front = ctx.saved_tensors
+        batch, C, V = ctx.shape
+        x, y, z = xc.unbind(-1)
+        shape = (*batch, V, C)
+        g_pa = g_pa if g_pa is not None else x.new_zeros(*shape, 2)
+        g_pb = g_pb if g_pb is not None else x.new_zeros(*shape, 2)
+        g_ra = g_ra if g_ra is not None else x.new_zeros(shape)
+        g_rb = g_rb if g_rb is not None else x.new_zeros(shape)
+        gu, gv = torch.stack([g_pa, g_pb], -2).reshape(-1, V, 2 * C, 2).unbind(-1)
+        gr = torch.stack([g_ra, g_rb], -1).reshape(-1, V, 2 * C)
+        # u = k00 x / z + k01 y / z + k02, v = k11 y / z + k12; rad = q r, q ~ |x_c|^(1/2) zc^(-3/2)
+        half = gr * rad * 0.5 / nn2
+        gx = torch.addcmul(half * x, gu * k00, iz)
+        gy = torch.addcmul(half * y, torch.addcmul(gu * k01, gv, k11), iz)
+        gz = torch.addcmul(half * z, torch.addcmul(gu * du, gv, dv), iz, value=-1.0)
+        gz = torch.addcmul(gz, gr * rad * front, zc.reciprocal(), value=-1.5)
+        # x_c = R X + t: the ends' gradient is sum over cameras of R^T g
+        g_ends = torch.matmul(torch.stack([gx, gy, gz], -1), R).sum(1).view(*batch, C, 2, 3)
+        g_radius = None
+        if ctx.needs_input_grad[2]:
+            g_radius = (gr * q).view(-1, V, C, 2).sum((0, 1, 3))
+        return g_ends[..., 0, :], g_ends[..., 1, :], g_radius, None, None, None, None
 
 
 def _uneven_capsule_sdf(p, pa, pb, ra, rb):
@@ -152,48 +221,88 @@ def distance_to_capsules(points: torch.Tensor, caps: Capsules2D, *, signed: bool
     G, R, pts = _point_groups(points, batch)
     pts = pts.to(caps.pa)
     fields = [f.reshape(G, R * C, -1) for f in (caps.pa, caps.pb, caps.ra, caps.rb)]  # (G, R C, 2 or 1)
-    with torch.no_grad():  # every capsule, no graph, in cache-sized chunks of rows: each point's nearest
-        valid = caps.valid.reshape(G, R * C, 1)
-        n = max(1, _COVERAGE_CHUNK // max(1, G * C * pts.shape[1]))
-        parts = []
-        for r0 in range(0, R, n):
-            rows = slice(r0 * C, min(R, r0 + n) * C)
-            sdf = _capsule_sdf(pts, *(f[:, rows] for f in fields)).masked_fill_(~valid[:, rows], math.inf)
-            parts.append(sdf.view(G, -1, C, sdf.shape[-1]).min(-2))
-        best = torch.cat([b for b, _ in parts], 1) if len(parts) > 1 else parts[0][0]  # (G, R, P)
-        nearest = torch.cat([i for _, i in parts], 1) if len(parts) > 1 else parts[0][1]
+    best, nearest = _nearest_capsules(pts, fields, caps.valid.reshape(G, R * C, 1), C)
     floor = -math.inf if signed else 0.0
     if not (torch.is_grad_enabled() and any(f.requires_grad for f in fields)):
         return best.clamp_min(floor).reshape(*batch, -1)
     # The gradient is the nearest capsule's (that of the min): recomputed with autograd for that capsule
     # only, (G, R, P) values instead of (G, R, C, P).
-    P = pts.shape[1]
-    rows = torch.arange(R, device=nearest.device).repeat_interleave(P) * C + nearest.reshape(G, R * P)
-    pa, pb, ra, rb = (f.gather(1, rows.unsqueeze(-1).expand(-1, -1, f.shape[-1])) for f in fields)
-    p = pts.repeat(1, R, 1)  # (G, R P, 2), row r's copy of the points
-    e, diff = pb - pa, p - pa
-    ee = (e * e).sum(-1)
-    s = torch.where(ee > 1e-12, (diff * e).sum(-1) / ee.clamp_min(1e-12), 0.0)  # the axis parameter of p
-    t = s.clamp(0.0, 1.0)
-    q = diff - t.unsqueeze(-1) * e
-    d = (q * q).sum(-1).clamp_min(1e-12).sqrt() - (ra + t.unsqueeze(-1) * (rb - ra)).squeeze(-1)
-    d = torch.where(torch.isfinite(best).reshape(G, R * P), d, math.inf)  # no valid capsule: inf
+    d, _ = _nearest_axis_distance(pts, fields, nearest, best)
     return d.clamp_min(floor).reshape(*batch, -1)
 
 
-def _capsule_sdf(pts, pa, pb, ra, rb) -> torch.Tensor:
+def _nearest_capsules(pts, fields, valid, C: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Signed distance ``best`` (G, R, P) of points ``pts`` (G, P, 2) to the nearest of C valid capsules per
+    row (``inf`` without one) and that capsule's index ``nearest`` (G, R, P); ``fields`` are ``pa``, ``pb``
+    (G, R C, 2), ``ra``, ``rb`` (G, R C, 1), ``valid`` (G, R C, 1). No graph; every capsule is tested in
+    cache-sized chunks of rows."""
+    G, RC = valid.shape[:2]
+    R = RC // max(1, C)
+    with torch.no_grad():
+        n = max(1, _COVERAGE_CHUNK // max(1, G * C * pts.shape[1]))
+        parts = []
+        for r0 in range(0, R, n):
+            rows = slice(r0 * C, min(R, r0 + n) * C)
+            sdf = _capsule_sdf(pts, *(f[:, rows] for f in fields), valid[:, rows])
+            parts.append(sdf.view(G, -1, C, sdf.shape[-1]).min(-2))
+        best = torch.cat([b for b, _ in parts], 1) if len(parts) > 1 else parts[0][0]  # (G, R, P)
+        nearest = torch.cat([i for _, i in parts], 1) if len(parts) > 1 else parts[0][1]
+    return best, nearest
+
+
+def _nearest_axis_distance(pts, fields, nearest, best):
+    """``|p - q(t)| - r(t)`` (G, R P) of every point to its ``nearest`` capsule (:func:`_nearest_capsules`),
+    differentiable in ``fields``; ``inf`` where ``best`` is (no valid capsule).
+
+    Coordinates are separate (G, R P) tensors (element-wise operations on them cost a fraction of those over
+    a trailing dim of size 2). Also returns the terms its gradient needs (:mod:`torchpf.geometry.chamfer`):
+    ``index`` (G R P) the capsule's row among the G R C flattened ones, ``ax``, ``ay``, ``ra``, ``rb``, the
+    axis ``ex``, ``ey``, ``dx``, ``dy`` = p - pa, ``inv_ee`` = 1 / |e|^2 (0 for a point-like axis), the axis
+    parameter ``s`` and ``t = clamp(s, 0, 1)``, ``qx``, ``qy`` = p - pa - t e and ``qq = |q|^2``."""
+    G, R, P = nearest.shape
+    RC = fields[0].shape[1]
+    C = RC // max(1, R)
+    rows = torch.arange(R, device=nearest.device).repeat_interleave(P) * C + nearest.reshape(G, R * P)
+    index = (rows + torch.arange(G, device=rows.device).unsqueeze(-1) * RC).reshape(-1)
+    table = torch.cat(fields, -1).reshape(G * RC, 6)  # (pa, pb, ra, rb) per capsule
+    ax, ay, bx, by, ra, rb = table.index_select(0, index).view(G, R * P, 6).unbind(-1)
+    p = pts.repeat(1, R, 1)  # (G, R P, 2), row r's copy of the points
+    dx, dy = p[..., 0] - ax, p[..., 1] - ay
+    ex, ey = bx - ax, by - ay
+    ee = torch.addcmul(ex * ex, ey, ey)
+    inv_ee = torch.where(ee > 1e-12, ee.clamp_min(1e-12).reciprocal(), 0.0)
+    s = torch.addcmul(dx * ex, dy, ey) * inv_ee  # the axis parameter of p
+    t = s.clamp(0.0, 1.0)
+    qx, qy = dx - t * ex, dy - t * ey
+    qq = torch.addcmul(qx * qx, qy, qy)
+    d = qq.clamp_min(1e-12).sqrt() - torch.addcmul(ra, t, rb - ra)
+    d = torch.where(torch.isfinite(best).reshape(G, R * P), d, math.inf)  # no valid capsule: inf
+    terms = {"index": index, "ax": ax, "ay": ay, "ra": ra, "rb": rb, "ex": ex, "ey": ey, "dx": dx, "dy": dy}
+    return d, {**terms, "inv_ee": inv_ee, "s": s, "t": t, "qx": qx, "qy": qy, "qq": qq}
+
+
+def _capsule_sdf(pts, pa, pb, ra, rb, valid) -> torch.Tensor:
     """Signed distance (pixels) of points ``pts`` (G, P, 2) to capsules ``pa``, ``pb`` (G, K, 2), ``ra``,
-    ``rb`` (G, K, 1): (G, K, P), with ``|p - a|^2`` and ``(p - a) . e`` from matrix products; in place
-    (no autograd)."""
+    ``rb`` (G, K, 1): (G, K, P), ``inf`` where not ``valid`` (G, K, 1). ``|p - a|^2`` and the axis
+    parameter ``s = (p - a) . e / |e|^2`` are two matrix products (rows ``x, y, x^2 + y^2, 1`` of the
+    points), then ``|p - a - t e|^2 = |p - a|^2 + |e|^2 t (t - 2 s)``: a dozen passes over (G, K, P), in
+    place (no autograd)."""
     e = pb - pa
     ee = (e * e).sum(-1, keepdim=True)  # (G, K, 1)
-    inv = torch.where(ee > 1e-12, 1.0 / ee.clamp_min(1e-12), torch.zeros_like(ee))
-    pt = pts.transpose(-1, -2)  # (G, 2, P)
-    qa = (pa @ pt).mul_(-2).add_((pa * pa).sum(-1, keepdim=True)).add_((pts * pts).sum(-1).unsqueeze(-2))
-    s = (e @ pt).sub_((pa * e).sum(-1, keepdim=True)).mul_(inv)  # the axis parameter of p, unclamped
+    inv = torch.where(ee > 1e-12, ee.clamp_min(1e-12).reciprocal(), 0.0)
+    one = torch.ones_like(ee)
+    # an invalid capsule is infinitely far from every point
+    aa = (pa * pa).sum(-1, keepdim=True).masked_fill_(~valid, math.inf)
+    A_uu = torch.cat([-2 * pa, one, aa], -1)
+    A_s = torch.cat([e * inv, 0 * one, -(pa * e).sum(-1, keepdim=True) * inv], -1)
+    PtT = torch.cat([pts, (pts * pts).sum(-1, keepdim=True), torch.ones_like(pts[..., :1])], -1).transpose(
+        -1, -2
+    )
+    qa = torch.bmm(A_uu, PtT)  # |p - a|^2
+    s = torch.bmm(A_s, PtT)
     t = s.clamp(0.0, 1.0)
-    d2 = s.mul_(-2).add_(t).mul_(t).mul_(ee).add_(qa).clamp_min_(1e-12)  # |p - a - t e|^2
-    return d2.sqrt_().sub_(t.mul_(rb - ra).add_(ra))
+    d2 = qa.addcmul_(torch.add(t, s, alpha=-2.0).mul_(t), ee).clamp_min_(1e-12)  # |p - a - t e|^2
+    return d2.sqrt_().sub_(torch.addcmul(ra, t, rb - ra))
 
 
 def _point_groups(points: torch.Tensor, batch: torch.Size) -> tuple[int, int, torch.Tensor]:
@@ -283,9 +392,11 @@ def _unit_samples(n_body: int, n_cap: int, generator, dtype, device, batch: tupl
 
 @functools.lru_cache(maxsize=64)
 def _fixed_unit_samples(n_body: int, n_cap: int, dtype, device):
-    ub = sample_pattern(n_body, 2, dtype=dtype, device=device)
-    uc = sample_pattern(n_cap, 2, dtype=dtype, device=device, offset=0.25).expand(2, n_cap, 2)
-    return _polar(ub, uc)
+    # ordinary tensors even when first asked for in inference mode (capsule_chamfer): autograd reuses them
+    with torch.inference_mode(False):
+        ub = sample_pattern(n_body, 2, dtype=dtype, device=device)
+        uc = sample_pattern(n_cap, 2, dtype=dtype, device=device, offset=0.25).expand(2, n_cap, 2)
+        return _polar(ub, uc)
 
 
 def _polar(ub: torch.Tensor, uc: torch.Tensor):
@@ -318,17 +429,44 @@ def sample_in_capsules(
         weights: (..., C * M) pixel area per point (0 for invalid capsules); their sum over a capsule is
         its area, differentiable with respect to the capsule parameters.
     """
-    pa, pb, ra, rb = caps.pa, caps.pb, caps.ra, caps.rb
-    batch = pa.shape[:-1]
-    u, h, cos_c, sin_c = _unit_samples(n_body, n_cap, generator, pa.dtype, pa.device, batch)
-    # Every point is pa + alpha e + beta n with e = pb - pa and n its normal (|n| = |e| = L): two products
-    # over the points once the per-capsule coefficients are known.
-    e = pb - pa
-    n = torch.stack([-e[..., 1], e[..., 0]], -1)
-    L = e.norm(dim=-1).clamp_min(1e-9)
-    inv = (1.0 / L).unsqueeze(-1)
-    # Body: t has density proportional to r(t) = ra + t (rb - ra) (inverse CDF of a linear density), the
-    # offset across the axis is (2 s - 1) r(t).
+    px, py, k = _area_points(caps, n_body, n_cap, generator)
+    batch = caps.pa.shape[:-2]
+    return torch.stack([px, py], -1).reshape(*batch, -1, 2), k["w"].reshape(*batch, -1)
+
+
+def _area_points(caps: Capsules2D, n_body: int, n_cap: int, generator=None, derivatives: bool = False):
+    """The points of :func:`sample_in_capsules` as x and y coordinates ``px``, ``py`` (..., C, M) (separate
+    tensors: a pass over a trailing dim of size 2 costs several plain ones) and the terms of
+    :func:`_point_coordinates` by name: the axis ``ex``, ``ey`` and its length ``L`` (..., C), ``alpha``,
+    ``beta``, ``w`` and, with ``derivatives``, ``der``."""
+    ax, ay = caps.pa.unbind(-1)
+    ex, ey = (caps.pb - caps.pa).unbind(-1)
+    L = torch.hypot(ex, ey).clamp_min(1e-9)
+    alpha, beta, w, *der = _point_coordinates(
+        L, caps.ra, caps.rb, caps.valid, n_body, n_cap, generator, derivatives
+    )
+    exu, eyu = ex.unsqueeze(-1), ey.unsqueeze(-1)
+    # p = pa + alpha e + beta n with n = (-e_y, e_x)
+    px = torch.addcmul(torch.addcmul(ax.unsqueeze(-1), alpha, exu), beta, eyu, value=-1.0)
+    py = torch.addcmul(torch.addcmul(ay.unsqueeze(-1), alpha, eyu), beta, exu)
+    k = {"ex": ex, "ey": ey, "L": L, "alpha": alpha, "beta": beta, "w": w, "der": der[0] if der else None}
+    return px, py, k
+
+
+def _point_coordinates(L, ra, rb, valid, n_body: int, n_cap: int, generator=None, derivatives: bool = False):
+    """The points of :func:`sample_in_capsules` in the frame of capsules of axis length ``L`` (clamped to
+    1e-9) and radii ``ra``, ``rb`` (..., C): ``p = pa + alpha e + beta n`` with ``e = pb - pa`` and its
+    normal ``n = (-e_y, e_x)``, and their areas ``w`` (0 where not ``valid``).
+
+    Returns ``alpha``, ``beta``, ``w`` (..., C, M) with M = n_body + 2 n_cap (body points, then the caps of
+    ``pa`` and of ``pb``); with ``derivatives`` also their derivatives in ``ra``, ``rb`` and ``L``: three
+    (..., C, 3 M) tensors ``[d alpha, d beta, d w]`` (with ``dL/de = e / L`` the points' and areas'
+    Jacobian in the capsule, :func:`torchpf.geometry.capsule_chamfer`)."""
+    batch = L.shape
+    u, h, cos_c, sin_c = _unit_samples(n_body, n_cap, generator, L.dtype, L.device, tuple(batch))
+    inv = L.reciprocal().unsqueeze(-1)  # (reciprocal: 1.0 / tensor dispatches through Python)
+    # Body: t has density proportional to r(t) = ra + t (rb - ra) (inverse CDF of a linear density:
+    # ra t + qa t^2 = qc), the offset across the axis is (2 s - 1) r(t).
     ra_, rb_ = ra.unsqueeze(-1), rb.unsqueeze(-1)
     qa = 0.5 * (rb_ - ra_)
     qc = u * 0.5 * (ra_ + rb_)
@@ -336,21 +474,62 @@ def sample_in_capsules(
     rt = ra_ + t * (rb_ - ra_)
     # Caps: uniform in a half-disc facing away from the other end (centre pa: along -e; pb: along +e).
     ra_l, rb_l = ra_ * inv, rb_ * inv
-    alpha = torch.cat([t, -cos_c[..., 0, :] * ra_l, 1 + cos_c[..., 1, :] * rb_l], -1)
-    beta = torch.cat([h * rt * inv, sin_c[..., 0, :] * ra_l, sin_c[..., 1, :] * rb_l], -1)
-    pts = torch.addcmul(pa.unsqueeze(-2), alpha.unsqueeze(-1), e.unsqueeze(-2))
-    pts = torch.addcmul(pts, beta.unsqueeze(-1), n.unsqueeze(-2))  # (..., C, M, 2)
+    cos_a, cos_b, sin_a, sin_b = cos_c[..., 0, :], cos_c[..., 1, :], sin_c[..., 0, :], sin_c[..., 1, :]
+    alpha = torch.cat([t, -cos_a * ra_l, 1 + cos_b * rb_l], -1)
+    beta = torch.cat([h * rt * inv, sin_a * ra_l, sin_b * rb_l], -1)
     half_disc = 0.5 * math.pi / n_cap
-    w = torch.cat(
+    valid = valid.unsqueeze(-1).to(L.dtype)
+    w = (
+        torch.cat(
+            [
+                (L * (ra + rb) / n_body).unsqueeze(-1).expand(*batch, n_body),
+                (half_disc * ra * ra).unsqueeze(-1).expand(*batch, n_cap),
+                (half_disc * rb * rb).unsqueeze(-1).expand(*batch, n_cap),
+            ],
+            -1,
+        )
+        * valid
+    )
+    if not derivatives:
+        return alpha, beta, w
+    # implicit derivatives of the body's t: F = ra t + qa t^2 - qc = 0, dF/dt = r(t)
+    t_ra = (0.5 * (t * t + u) - t) / rt
+    t_rb = 0.5 * (u - t * t) / rt
+    hi = h * inv
+    zb, zc = torch.zeros_like(t), torch.zeros_like(ra_l.expand(*batch, n_cap))
+    wb = (L / n_body).unsqueeze(-1).expand(*batch, n_body) * valid
+    # d / dL: -x / L for beta and the caps' alpha - alpha_0 (the cap of pb starts at 1)
+    a_L = torch.cat([zb, alpha[..., n_body:] - torch.cat([zc, 1 + zc], -1)], -1) * -inv
+    d_ra = torch.cat(
         [
-            (L * (ra + rb) / n_body).unsqueeze(-1).expand(*batch, n_body),
-            (half_disc * ra * ra).unsqueeze(-1).expand(*batch, n_cap),
-            (half_disc * rb * rb).unsqueeze(-1).expand(*batch, n_cap),
+            t_ra,
+            -cos_a * inv,
+            zc,
+            hi * (torch.rsub(t, 1.0) + (rb_ - ra_) * t_ra),
+            sin_a * inv,
+            zc,
+            wb,
+            2 * half_disc * ra_ * valid + zc,
+            zc,
         ],
         -1,
-    ) * caps.valid.unsqueeze(-1)
-    C, M = pts.shape[-3], pts.shape[-2]
-    return pts.reshape(*batch[:-1], C * M, 2), w.reshape(*batch[:-1], C * M)
+    )
+    d_rb = torch.cat(
+        [
+            t_rb,
+            zc,
+            cos_b * inv,
+            hi * (t + (rb_ - ra_) * t_rb),
+            zc,
+            sin_b * inv,
+            wb,
+            zc,
+            2 * half_disc * rb_ * valid + zc,
+        ],
+        -1,
+    )
+    d_L = torch.cat([a_L, beta * -inv, (ra_ + rb_) / n_body * valid + zb, zc, zc], -1)
+    return alpha, beta, w, (d_ra, d_rb, d_L)
 
 
 def outline_points(caps: Capsules2D, n_side: int = 6, n_cap: int = 3) -> tuple[torch.Tensor, torch.Tensor]:
@@ -467,7 +646,7 @@ def _coverage_chunk(a, b, ra, rb, valid, own, PtT, softness: float, reduce: str)
     g, r, C = a.shape[:3]
     e = b - a
     ee = (e * e).sum(-1, keepdim=True)  # (g, r, C, 1)
-    inv = torch.where(ee > 1e-12, 1.0 / ee.clamp_min(1e-12), torch.zeros_like(ee))
+    inv = torch.where(ee > 1e-12, ee.clamp_min(1e-12).reciprocal(), torch.zeros_like(ee))
     one = torch.ones_like(ee)
     aa = (a * a).sum(-1, keepdim=True)
     if softness <= 0:  # an invalid capsule is infinitely far from every point

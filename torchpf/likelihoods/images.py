@@ -26,6 +26,7 @@ import torch.nn.functional as F
 from torchpf.camera import CameraRig
 from torchpf.geometry import (
     Capsules2D,
+    capsule_chamfer,
     capsule_coverage,
     distance_to_capsules,
     outline_points,
@@ -400,13 +401,14 @@ class SilhouetteDistanceLikelihood(ImageLikelihood):
         S = self._check_cameras(obs.masks, body)
         obs = obs.despeckled(self.despeckle)
         caps = self._caps2d(body, S, obs.height, obs.width, obs.offset)  # (S, V, N, C)
-        pts, w = sample_in_capsules(caps, self.n_body, self.n_cap)  # (S, V, N, P, 2)
-        d_in = _distance_lookup(obs.outside_distance(), pts).clamp_max(self.tau)
-        model_term = (w * d_in * d_in).sum(-1) / w.sum(-1).clamp_min(1e-9)
         fg, ok = _foreground(obs, self.n_samples, S, caps.pa)
-        d_cov = distance_to_capsules(fg, caps).clamp_max(self.tau)  # (S, V, N, n)
+        # both terms and, in one autograd node, their gradient in the capsules (written out: autograd
+        # through the few hundred small operations cost several forwards)
+        model_term, cover_term = capsule_chamfer(
+            caps, obs.outside_distance(), fg, tau=self.tau, n_body=self.n_body, n_cap=self.n_cap
+        )
         # a camera without foreground samples (empty or invalid mask) contributes 0
-        return _pose_major(torch.where(ok, model_term + (d_cov * d_cov).mean(-1), 0.0))
+        return _pose_major(torch.where(ok, model_term + cover_term, 0.0))
 
     def _log_lik(self, body, obs: Silhouettes):
         return -self._distances(body, obs).sum(-1) / (2 * self.sigma**2)

@@ -53,6 +53,46 @@ def test_project_capsules_into_a_rig():
         assert torch.equal(one.valid, ref.valid), v
 
 
+def test_rig_projection_gradient_matches_autograd_per_camera():
+    """The rig's projection (one autograd node with the Jacobian written out) has the gradient in the ends
+    and radii that autograd gives through the per-camera projection, with an end behind a camera and
+    extra batch dims."""
+    rig, a, b, r = _rig_and_capsules()
+    a, b = a.reshape(5, 1, 4, 3).expand(5, 2, 4, 3).clone(), b.reshape(5, 1, 4, 3).expand(5, 2, 4, 3).clone()
+    a[1, 1, 2] = -rig.R[0].T @ rig.t[0] - 0.5 * rig.R[0, 2]  # behind camera 0
+    g = torch.Generator().manual_seed(2)
+    leaves = [x.clone().requires_grad_() for x in (a, b, r)]
+    caps = project_capsules(rig, *leaves)
+    assert caps.pa.shape == (5, 2, 3, 4, 2) and caps.pa.grad_fn is not None
+    assert not bool(caps.valid[1, 1, 0, 2]) and bool(caps.valid.sum() > 100)
+    weights = [
+        torch.rand(f.shape, generator=g, dtype=torch.float64) for f in (caps.pa, caps.pb, caps.ra, caps.rb)
+    ]
+    loss = sum((w * f).sum() for w, f in zip(weights, (caps.pa, caps.pb, caps.ra, caps.rb), strict=True))
+    got = torch.autograd.grad(loss, leaves)
+    ref_leaves = [x.clone().requires_grad_() for x in (a, b, r)]
+    ref_loss = 0
+    for v, cam in enumerate(rig.values()):
+        one = project_capsules(cam, *ref_leaves)
+        for w, f in zip(weights, (one.pa, one.pb, one.ra, one.rb), strict=True):
+            ref_loss = ref_loss + (w[:, :, v] * f).sum()
+    for x, y in zip(got, torch.autograd.grad(ref_loss, ref_leaves), strict=True):
+        torch.testing.assert_close(x, y, rtol=1e-9, atol=1e-9)
+    # one pose, only some fields used (the others get no gradient)
+    got = torch.autograd.grad(
+        project_capsules(rig, leaves[0][:1, 0], b[:1, 0], leaves[2]).ra.sum(), (leaves[0], leaves[2])
+    )
+    ref = torch.autograd.grad(
+        sum(
+            project_capsules(cam, ref_leaves[0][:1, 0], b[:1, 0], ref_leaves[2]).ra.sum()
+            for cam in rig.values()
+        ),
+        (ref_leaves[0], ref_leaves[2]),
+    )
+    for x, y in zip(got, ref, strict=True):
+        torch.testing.assert_close(x, y, rtol=1e-9, atol=1e-9)
+
+
 def cv2_capsule_mask(pa, pb, ra, rb, H, W, shift=8):
     """Reference raster: both discs plus the convex hull of densely sampled disc boundaries, sub-pixel."""
     m = np.zeros((H, W), np.uint8)

@@ -1,0 +1,102 @@
+"""`capsule_chamfer` (values and hand-written gradient) against the composition it replaces, differentiated
+by autograd: area points (`sample_in_capsules`), a `grid_sample` look-up in the mask's distance image and
+`distance_to_capsules`. The masks come from the independent renderer of `_masks.py` (OpenCV), at poses
+other than the capsules'."""
+
+import pytest
+import torch
+
+from torchpf.camera import camera_ring
+from torchpf.geometry import (
+    Capsules2D,
+    capsule_chamfer,
+    distance_to_capsules,
+    project_capsules,
+    sample_in_capsules,
+)
+from torchpf.likelihoods.images import _distance_lookup
+from torchpf.observations import Silhouettes
+
+from .._masks import render_masks
+
+TAU = 6.0
+
+
+def _reference(caps, outside, fg, tau=TAU, n_body=8, n_cap=2):
+    """The composition of the distance cue before `capsule_chamfer` (autograd through all of it)."""
+    pts, w = sample_in_capsules(caps, n_body, n_cap)  # (V, N, P, 2)
+    d_in = _distance_lookup(outside, pts).clamp_max(tau)
+    model = (w * d_in * d_in).sum(-1) / w.sum(-1).clamp_min(1e-9)
+    d_cov = distance_to_capsules(fg, caps).clamp_max(tau)
+    return model, (d_cov * d_cov).mean(-1)
+
+
+@pytest.fixture(scope="module")
+def scene(human):
+    """Camera-major capsules (V, N, C) of 5 random poses, some limbs outside the image, one capsule behind a
+    camera; the distance images and foreground samples of masks rendered at other poses."""
+    rig = camera_ring(3, radius=3.0, height=1.5, target=(0, 0, 0.85), width=160, height_px=120)
+    g = torch.Generator().manual_seed(5)
+    D, rev = len(human.dof_names), human.dof_revolute
+    poses = torch.zeros(7, D, dtype=torch.float64)
+    poses[:, rev] = 0.4 * torch.randn(7, int(rev.sum()), generator=g, dtype=torch.float64)
+    poses[:, :6] = 0.0
+    poses = human.clamp(poses)
+    up = human.dof_names.index("Hips_Yposition")
+    poses[:, up] = 0.05 - human.fk(poses)[..., 2].min(-1).values
+    joints = human.fk(poses)
+    masks = render_masks(joints[0], human.tree.bones, human.radii, rig.cameras)
+    obs = Silhouettes(masks)
+    joints = joints[1:6].clone()
+    joints[3] += torch.tensor([1.6, 0.0, 0.0], dtype=torch.float64)  # a pose half out of the images
+    ends = joints[:, torch.as_tensor(human.bones)]  # (N, C, 2, 3)
+    caps = project_capsules(rig, ends[..., 0, :], ends[..., 1, :], human.radii)  # (N, V, C)
+    fields = [f.transpose(0, 1).contiguous() for f in (caps.pa, caps.pb, caps.ra, caps.rb, caps.valid)]
+    fields[4][1, 2, 3] = False  # a capsule behind the camera
+    fg, ok = obs.foreground_samples(128)
+    return {
+        "caps": Capsules2D(*fields),
+        "outside": obs.outside_distance().double(),
+        "fg": fg[:, None].double(),
+    }
+
+
+@pytest.mark.parametrize("tau", [TAU, 1e9])
+def test_values_and_gradients_match_autograd_of_the_composition(scene, tau):
+    caps = scene["caps"]
+    leaves = [f.clone().requires_grad_() for f in (caps.pa, caps.pb, caps.ra, caps.rb)]
+    ref_leaves = [f.clone().requires_grad_() for f in leaves]
+    got = capsule_chamfer(Capsules2D(*leaves, caps.valid), scene["outside"], scene["fg"], tau=tau)
+    ref = _reference(Capsules2D(*ref_leaves, caps.valid), scene["outside"], scene["fg"], tau=tau)
+    assert got[0].shape == got[1].shape == caps.valid.shape[:2]
+    for a, b in zip(got, ref, strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-9)
+    g = torch.Generator().manual_seed(0)
+    weights = [torch.rand(got[0].shape, generator=g, dtype=torch.float64) for _ in range(2)]
+    loss = sum((w * t).sum() for w, t in zip(weights, got, strict=True))
+    ref_loss = sum((w * t).sum() for w, t in zip(weights, ref, strict=True))
+    grads = torch.autograd.grad(loss, leaves, retain_graph=True)
+    for a, b in zip(grads, torch.autograd.grad(ref_loss, ref_leaves), strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-7, atol=1e-9)
+    assert bool(torch.autograd.grad(got[1].sum(), leaves[2])[0].abs().sum() > 0)
+    with torch.no_grad():  # the forward alone gives the same values
+        for a, b in zip(capsule_chamfer(caps, scene["outside"], scene["fg"], tau=tau), got, strict=True):
+            torch.testing.assert_close(a, b.detach(), rtol=1e-9, atol=1e-9)
+
+
+def test_float32_and_per_sequence_images(scene):
+    """float32 agrees with float64; (S, V, H, W) images with (S, V, N, C) capsules score each sequence on
+    its own images, as one call per sequence does."""
+    caps, outside, fg = scene["caps"], scene["outside"], scene["fg"]
+    ref = capsule_chamfer(caps, outside, fg, tau=TAU)
+    f32 = Capsules2D(*(f.float() for f in (caps.pa, caps.pb, caps.ra, caps.rb)), caps.valid)
+    for a, b in zip(capsule_chamfer(f32, outside.float(), fg.float(), tau=TAU), ref, strict=True):
+        assert a.dtype == torch.float32
+        torch.testing.assert_close(a.double(), b, rtol=1e-4, atol=1e-3)
+    flipped = outside.flip(-1)
+    two = Capsules2D(*(torch.stack([f, f]) for f in (caps.pa, caps.pb, caps.ra, caps.rb, caps.valid)))
+    both = capsule_chamfer(two, torch.stack([outside, flipped]), torch.stack([fg, fg]), tau=TAU)
+    other = capsule_chamfer(caps, flipped, fg, tau=TAU)
+    for a, b, c in zip(both, ref, other, strict=True):
+        torch.testing.assert_close(a[0], b)
+        torch.testing.assert_close(a[1], c)

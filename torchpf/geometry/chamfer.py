@@ -1,0 +1,213 @@
+"""The two-sided truncated chamfer distance between projected capsules and a silhouette, with its gradient
+in the capsules written out (the terms of :class:`~torchpf.likelihoods.SilhouetteDistanceLikelihood`, the
+cue of the gradient refinement :mod:`torchpf.refine`; Gall et al., IJCV 2010, §4).
+
+Per image and pose (pixels)::
+
+    model = sum_i w_i rho(d_mask(p_i)) / sum_i w_i        p_i, w_i: sample_in_capsules (area points)
+    cover = (1 / n) sum_j rho(d_model(q_j))               q_j: n foreground samples of the mask
+    rho(d) = min(d, tau)^2
+
+``d_mask`` is a bilinear look-up in the mask's outside-distance image (growing by the distance to the image
+outside it), ``d_model`` the distance to the nearest capsule (:func:`distance_to_capsules`).
+
+Autograd through these few hundred small operations per pose costs several times the forward pass for the
+handful of poses a refinement moves (the per-operation overhead dominates); :func:`capsule_chamfer` is one
+autograd node whose forward also forms each pose's gradient in its capsules in closed form (the area points'
+Jacobian in the capsule, the bilinear look-up's gradient, the nearest capsule's outline gradient), and whose
+backward only scales it. Values and gradients equal those of the composition of :func:`sample_in_capsules`,
+a ``grid_sample`` look-up and :func:`distance_to_capsules` to rounding (``tests/torchpf/geometry/
+test_chamfer.py``).
+
+Example::
+
+    caps = project_capsules(rig, a, b, radii)                       # (N, V, C) -> camera-major (V, N, C)
+    model, cover = capsule_chamfer(caps, outside, fg, tau=6.0)      # outside (V, H, W), fg (V, 1, n, 2)
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from torchpf.geometry.projected import (
+    Capsules2D,
+    _area_points,
+    _nearest_axis_distance,
+    _nearest_capsules,
+)
+
+__all__ = ["capsule_chamfer"]
+
+
+def capsule_chamfer(
+    caps: Capsules2D,
+    distance: Tensor,
+    samples: Tensor,
+    *,
+    tau: float,
+    n_body: int = 8,
+    n_cap: int = 2,
+) -> tuple[Tensor, Tensor]:
+    """The model and cover terms of the truncated chamfer distance (module docstring), per image and pose.
+
+    Args:
+        caps: :class:`Capsules2D` ``(..., N, C)``: N poses' capsules in each image of ``...`` (camera-major,
+            e.g. ``(S, V, N, C)``), pixels.
+        distance: ``(..., H, W)`` each image's distance (pixels) to its mask, 0 inside
+            (:meth:`~torchpf.observations.Silhouettes.outside_distance`); leading dims broadcast to the
+            capsules' ``...``.
+        samples: ``(..., 1, n, 2)`` foreground points of each image (pixels), shared by its N poses.
+        tau: truncation (pixels) of each point's distance.
+        n_body, n_cap: area points per capsule body and end cap (:func:`sample_in_capsules`).
+
+    Returns:
+        ``model``, ``cover`` ``(..., N)`` in squared pixels; differentiable in the capsules' ``pa``, ``pb``,
+        ``ra``, ``rb`` (not in the images or samples). A point with no valid capsule has ``d_model = inf``
+        (its term is ``tau^2``).
+    """
+    group, (N, C) = caps.pa.shape[:-3], caps.pa.shape[-3:-1]
+    G = math.prod(group)
+    H, W = distance.shape[-2:]
+    image = distance.to(caps.pa).expand(*group, H, W).reshape(G, H, W)
+    fg = samples.to(caps.pa).expand(*group, 1, samples.shape[-2], 2).reshape(G, -1, 2)
+    fields = [f.reshape(G, N, C, -1) for f in (caps.pa, caps.pb, caps.ra, caps.rb)]
+    valid = caps.valid.reshape(G, N, C)
+    if torch.is_grad_enabled() and any(f.requires_grad for f in fields):
+        model, cover = _Chamfer.apply(*fields, valid, image, fg, float(tau), int(n_body), int(n_cap))
+    else:
+        model, cover, _ = _chamfer(*fields, valid, image, fg, float(tau), int(n_body), int(n_cap), False)
+    return model.reshape(*group, N), cover.reshape(*group, N)
+
+
+class _Chamfer(torch.autograd.Function):
+    """:func:`_chamfer` as one autograd node: the forward keeps each row's gradient, the backward scales
+    it."""
+
+    @staticmethod
+    def forward(ctx, pa, pb, ra, rb, valid, image, fg, tau, n_body, n_cap):
+        model, cover, (jm, jc) = _chamfer(pa, pb, ra, rb, valid, image, fg, tau, n_body, n_cap, True)
+        # (inference tensors, see _chamfer: autograd needs ordinary ones)
+        ctx.save_for_backward(jm.clone(), jc.clone())
+        return model.clone(), cover.clone()
+
+    @staticmethod
+    def backward(ctx, g_model, g_cover):
+        jm, jc = ctx.saved_tensors
+        g = jm * g_model[..., None, None] + jc * g_cover[..., None, None]  # (G, N, C, 6)
+        return g[..., 0:2], g[..., 2:4], g[..., 4:5], g[..., 5:6], None, None, None, None, None, None
+
+
+def _chamfer(pa, pb, ra, rb, valid, image, fg, tau: float, n_body: int, n_cap: int, grad: bool):
+    """Both terms ``(G, N)`` of capsules ``pa``, ``pb`` (G, N, C, 2), ``ra``, ``rb`` (G, N, C, 1), ``valid``
+    (G, N, C) against images (G, H, W) and samples (G, n, 2); with ``grad`` also each term's gradient in
+    ``(pa, pb, ra, rb)`` ``(G, N, C, 6)``, else None.
+
+    Coordinates are kept as separate x and y tensors: on a CPU an element-wise pass over a trailing dim of
+    size 2 (a broadcast, a sum, a stack) costs several plain passes of the same size."""
+    # inference mode: no graph and no version counters, a tenth less per-operation overhead than no_grad
+    with torch.inference_mode():
+        model, jm = _model_term(pa, pb, ra[..., 0], rb[..., 0], valid, image, tau, n_body, n_cap, grad)
+        cover, jc = _cover_term(pa, pb, ra, rb, valid, fg, tau, grad)
+    return model, cover, ((jm, jc) if grad else None)
+
+
+def _model_term(pa, pb, ra, rb, valid, image, tau: float, n_body: int, n_cap: int, grad: bool):
+    """``sum_i w_i rho(d_mask(p_i)) / sum_i w_i`` (G, N) and its gradient (G, N, C, 6) or None."""
+    G, N, C = valid.shape
+    px, py, k = _area_points(Capsules2D(pa, pb, ra, rb, valid), n_body, n_cap, derivatives=grad)
+    ex, ey, L, alpha, beta, w = k["ex"], k["ey"], k["L"], k["alpha"], k["beta"], k["w"]
+    exu, eyu = ex.unsqueeze(-1), ey.unsqueeze(-1)
+    M = px.shape[-1]
+    value, gx, gy = _distance_lookup(image, px.view(G, -1), py.view(G, -1), grad)
+    value = value.view(G, N, C, M)
+    d = value.clamp_max(tau)
+    f = d * d
+    Wc = w.sum((-2, -1)).clamp_min(1e-9)
+    model = (w * f).sum((-2, -1)) / Wc
+    if not grad:
+        return model, None
+    inv = Wc.reciprocal()[..., None, None]
+    # d model / d p_i and d model / d w_i (G, N, C, M); (all weights 0: the model term is 0 either way)
+    slope = torch.where(value <= tau, d, 0.0) * (2 * inv) * w
+    g_px, g_py = slope * gx.view(G, N, C, M), slope * gy.view(G, N, C, M)
+    g_w = (f - model[..., None, None]) * inv
+    s_e = torch.addcmul(g_px * exu, g_py, eyu)  # g . e
+    s_n = torch.addcmul(g_py * exu, g_px, eyu, value=-1.0)  # g . n
+    # d/de of alpha g . e + beta g . n(e) at fixed alpha, beta: alpha g + beta (g_y, -g_x)
+    g_ex = (alpha * g_px + beta * g_py).sum(-1)
+    g_ey = (alpha * g_py - beta * g_px).sum(-1)
+    # alpha, beta and w through ra, rb and L
+    vec = torch.cat([s_e, s_n, g_w], -1)
+    g_ra, g_rb, g_L = ((vec * c).sum(-1) for c in k["der"])
+    g_L = g_L / L
+    g_ex, g_ey = torch.addcmul(g_ex, g_L, ex), torch.addcmul(g_ey, g_L, ey)
+    g_ax, g_ay = g_px.sum(-1) - g_ex, g_py.sum(-1) - g_ey
+    return model, torch.stack([g_ax, g_ay, g_ex, g_ey, g_ra, g_rb], -1)
+
+
+def _cover_term(pa, pb, ra, rb, valid, fg, tau: float, grad: bool):
+    """``(1 / n) sum_j rho(d_model(q_j))`` (G, N) and its gradient (G, N, C, 6) or None."""
+    G, N, C = valid.shape
+    n = fg.shape[1]
+    fields = [f.reshape(G, N * C, -1) for f in (pa, pb, ra, rb)]
+    best, nearest = _nearest_capsules(fg, fields, valid.reshape(G, N * C, 1), C)
+    if not grad:
+        d = best.clamp(0.0, tau)
+        return (d * d).mean(-1), None
+    d, k = _nearest_axis_distance(fg, fields, nearest, best)
+    dc = d.clamp(0.0, tau)
+    cover = (dc * dc).view(G, N, n).mean(-1)
+    # d = |q| - ra - t (rb - ra), q = p - pa - t e, t = clamp(s, 0, 1), s = (p - pa) . e / |e|^2
+    ex, ey, dx, dy, s, t = k["ex"], k["ey"], k["dx"], k["dy"], k["s"], k["t"]
+    g_d = torch.where(dc == d, dc, 0.0) * (2.0 / n)  # d cover / d d_j where the clamps pass it (not inf)
+    r_inv = k["qq"].clamp_min(1e-12).rsqrt()
+    ux, uy = k["qx"] * r_inv, k["qy"] * r_inv  # d |q| / d q
+    d_t = -torch.addcmul(ux * ex, uy, ey) - (k["rb"] - k["ra"])  # d d / d t
+    d_s = torch.where(t == s, d_t, 0.0) * k["inv_ee"]  # through s where the clamp passes it
+    two_s = 2 * s
+    # d s / d pa = (2 s e - e - (p - pa)) / |e|^2, d s / d pb = ((p - pa) - 2 s e) / |e|^2
+    g_bx, g_by = torch.addcmul(-t * ux, d_s, dx - two_s * ex), torch.addcmul(-t * uy, d_s, dy - two_s * ey)
+    g_ax = torch.addcmul(-ux - g_bx, d_s, -ex)  # -(1 - t) u + d_s (2 s e - e - diff)
+    g_ay = torch.addcmul(-uy - g_by, d_s, -ey)
+    rows = torch.stack([g_ax, g_ay, g_bx, g_by, t - 1, -t], -1) * g_d.unsqueeze(-1)  # (G, N n, 6)
+    j = torch.zeros(G * N * C, 6, dtype=rows.dtype, device=rows.device)
+    j.index_add_(0, k["index"], rows.view(-1, 6))
+    return cover, j.view(G, N, C, 6)
+
+
+def _distance_lookup(image, px, py, grad: bool):
+    """Bilinear look-up of distance images (G, H, W) at pixel coords ``px``, ``py`` (G, P) (pixel centres
+    at integers), continued outside the image by the distance to it (the value at the nearest border pixel
+    plus that distance: ``grid_sample(..., padding_mode="border")`` plus the offset); returns the values
+    (G, P) and, with ``grad``, their gradient in ``px`` and ``py`` (G, P each; the value and the slope from
+    the four corners, gathered once), else Nones."""
+    G, H, W = image.shape
+    ix, iy = px.clamp(0.0, W - 1.0), py.clamp(0.0, H - 1.0)
+    ox, oy = px - ix, py - iy
+    oo = torch.addcmul(ox * ox, oy, oy)
+    if not grad:  # the value alone: one grid_sample (pixel centres at integers, align_corners=False)
+        grid = torch.stack([ix.mul(2.0 / W).add_(1.0 / W - 1.0), iy.mul(2.0 / H).add_(1.0 / H - 1.0)], -1)
+        v = F.grid_sample(image.unsqueeze(1), grid.unsqueeze(1), padding_mode="border", align_corners=False)
+        return v.view(G, -1) + oo.sqrt(), None, None
+    if H < 2 or W < 2:  # a one-pixel-wide image: its border replicated, so both neighbours exist
+        image = F.pad(image.unsqueeze(1), (0, int(W < 2), 0, int(H < 2)), mode="replicate").squeeze(1)
+        H, W = image.shape[-2:]
+    x0, y0 = ix.floor().clamp_max_(W - 2.0), iy.floor().clamp_max_(H - 2.0)
+    fx, fy = ix - x0, iy - y0
+    idx = torch.add(x0, y0, alpha=W).long().unsqueeze(1)
+    corners = torch.tensor([0, 1, W, W + 1], device=idx.device).view(1, 4, 1)
+    v = image.reshape(G, H * W).gather(1, (idx + corners).view(G, -1)).view(G, 4, -1)
+    v00, v01, v10, v11 = v.unbind(1)
+    dx0, dx1 = v01 - v00, v11 - v10
+    top = torch.addcmul(v00, fx, dx0)
+    dy = torch.addcmul(v10, fx, dx1) - top
+    value = torch.addcmul(top, fy, dy) + oo.sqrt()
+    # inside the image (no offset along an axis) the bilinear slope, outside the offset's direction
+    r_inv = oo.clamp_min(1e-12).rsqrt()
+    gx = torch.where(ox == 0, torch.addcmul(dx0, fy, dx1 - dx0), ox * r_inv)
+    gy = torch.where(oy == 0, dy, oy * r_inv)
+    return value, gx, gy
