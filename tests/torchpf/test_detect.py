@@ -145,12 +145,22 @@ def test_recovery_faces_the_way_the_person_moved():
     feet point along the hull's motion since the last good frame (before: the torso turned by 140-180 deg,
     MPJPE 0.2 m for the rest of the clip)."""
     from benchmarks.auto_init import make_case, run_recovery
+    from benchmarks.foreign import body_plan
 
     case = make_case("08_09", seed=3, frames=30, follow=True)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        err, _, _ = run_recovery(case, 5, recovery=True, seed=3)
-    assert float(err[16:].mean()) < 0.1  # 0.2 m before
+        _, _, result = run_recovery(case, 5, recovery=True, seed=3)
+    # the heading as the horizontal direction across the hips (the two legs' top joints, found from the
+    # structure), estimate against truth, over the five frames after the re-acquisition
+    legs = body_plan(case.skeleton).legs
+    with torch.no_grad():
+        est, true = result.skeleton.fk(result.angles[16:21]), case.skeleton.fk(case.angles[16:21])
+    e, t = ((p[:, legs[0].top] - p[:, legs[1].top])[:, :2] for p in (est, true))
+    turn = torch.rad2deg(torch.atan2(e[:, 0] * t[:, 1] - e[:, 1] * t[:, 0], (e * t).sum(-1))).abs()
+    # 140-180 deg before (the back taken for the front); 20-51 deg now over seeds 0, 1, 3 (the limbs' error
+    # after a 10-frame occlusion varies with the seed: 0.06-0.15 m over frames 16-29)
+    assert float(turn.median()) < 60.0, turn
 
 
 def test_cli_init_auto_without_truth(case, tmp_path, capsys):
