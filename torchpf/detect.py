@@ -642,8 +642,8 @@ class PersonDetector:
             strata: search each heading x stride stratum apart and keep the best (else one population
                 from every candidate and ``start``).
             device, dtype: where and in which precision the likelihood runs (the tracker's).
-            posture: (D,) pose whose limb DOFs centre the weak posture prior of the search (N(posture,
-                ``posture_sigma``^2) per limb DOF); default the canonical standing posture. A recovering
+            posture: (D,) pose whose limb DOFs centre the weak posture prior of the search (``N(posture,
+                posture_sigma^2)`` per limb DOF); default the canonical standing posture. A recovering
                 track passes its last good estimate: a run's bent elbows, hidden in the silhouette of the
                 torso at low resolution, are kept instead of being pulled straight.
 
