@@ -22,15 +22,6 @@ def depth_cam():
 @pytest.fixture(scope="module")
 def seq_dir(tmp_path_factory):
     """A 3-frame sequence directory (wave, two 64x48 cameras, truth.csv at 15 fps) of the human.urdf body."""
-    from torchpf import Skeleton
-    from torchpf.assets import path
-    from torchpf.sequence import write_sequence
-    from torchpf.synth import synthesize
-    from training.synthetic import generate
+    from ._sequences import write_wave_sequence
 
-    skel = Skeleton.from_urdf(path("human.urdf"))
-    angles = generate("wave", 3, 15.0, seed=2).angles
-    cams = camera_ring(2, radius=4.0, width=64, height_px=48, target=(0.0, 0.0, 1.0))
-    root = tmp_path_factory.mktemp("cli") / "seq"
-    write_sequence(root, synthesize(skel, angles, cams, fps=15.0))
-    return root
+    return write_wave_sequence(tmp_path_factory.mktemp("cli") / "seq", 3)

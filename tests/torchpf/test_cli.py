@@ -9,21 +9,15 @@ import torch
 from torchpf import Skeleton
 from torchpf.__main__ import main
 from torchpf.assets import path
-from torchpf.camera import camera_ring
 from torchpf.io import read_mocap_csv, write_mocap_csv
-from torchpf.sequence import write_sequence
-from torchpf.synth import synthesize
-from training.synthetic import generate
+
+from ._sequences import write_wave_sequence
 
 
 @pytest.fixture(scope="module")
 def seq_dir(tmp_path_factory):
-    skel = Skeleton.from_urdf(path("human.urdf"))
-    angles = generate("wave", 8, 15.0, seed=2).angles
-    cams = camera_ring(2, radius=4.0, width=64, height_px=48, target=(0.0, 0.0, 1.0))
-    root = tmp_path_factory.mktemp("cli") / "seq"
-    write_sequence(root, synthesize(skel, angles, cams, fps=15.0))
-    return root
+    """The 8-frame version of the shared fixture (tests/torchpf/conftest.py)."""
+    return write_wave_sequence(tmp_path_factory.mktemp("cli") / "seq", 8)
 
 
 def test_track_then_evaluate(seq_dir, tmp_path, capsys):
