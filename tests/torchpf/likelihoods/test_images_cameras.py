@@ -44,7 +44,7 @@ def _reference(name, skel, rig, theta, obs: Silhouettes):
             cov = capsule_coverage(fg[v].to(theta), caps)
             out.append(1 - cov.mean(-1) if ok[v] else torch.zeros(len(theta), dtype=theta.dtype))
         else:
-            clean = obs.despeckled(3)
+            clean = obs  # the cue's default: no despeckling
             pts, w = sample_in_capsules(caps, 8, 2)
             d_in = _outside_lookup(clean.outside_distance()[v].to(pts), pts).clamp_max(6.0)
             fg, ok = clean.foreground_samples(128)
