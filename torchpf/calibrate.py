@@ -391,6 +391,7 @@ def fit_body(
     pose_lr: float = 0.02,
     pose_sigma: float = 0.1,
     length_sigma: float = 0.1,
+    scale_sigma: float | None = None,
     distance_weight: float = 0.05,
     max_size: int = 200,
     groups: list[list[int]] | None = None,
@@ -411,6 +412,10 @@ def fit_body(
         poses: (F, D) approximate poses of those frames (rad / m, ``dof_names`` order).
         frames_used: the first ``k`` frames, or a list of frame indices.
         fit_lengths: also fit one bone-length factor per group (weakly held at 1 by ``length_sigma``).
+        scale_sigma: ``None`` fits the global scale freely; a number holds it near 1 by the same kind of
+            weak penalty (``1e-3 log(s)^2 / scale_sigma^2``): a MAP scale for a skeleton whose bone lengths
+            are already roughly right (one noisy frame moves a free scale by up to 13 %, see
+            :func:`torchpf.detect.fit_body_to_frame`).
         iterations: the most Adam steps over all stages; each of the ``len(softness)`` stages gets an equal
             share and stops early when the loss improves by less than ``tol`` (relative) in ``patience``
             steps.
@@ -527,6 +532,8 @@ def fit_body(
         loss = loss + 1e-3 * drift
         if fit_lengths:
             loss = loss + 1e-3 * (log_l**2).sum() / length_sigma**2
+        if scale_sigma is not None:
+            loss = loss + 1e-3 * log_s**2 / scale_sigma**2
         return loss
 
     params = [

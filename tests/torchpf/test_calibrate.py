@@ -158,6 +158,25 @@ def test_fit_converges_from_a_wrong_pose(human, scene):
     assert float(after.mean()) < float(error.mean())
 
 
+def test_scale_sigma_holds_the_scale_as_a_prior(human, scene):
+    """``scale_sigma`` is a prior on the global scale, not a clamp: a loose one leaves the masks' evidence
+    (true scale 1.04) in charge, a tight one keeps the scale at 1."""
+    fits = {
+        sigma: fit_body(
+            scene["stick"],
+            scene["rig"],
+            scene["masks"],
+            scene["poses"],
+            frames_used=2,
+            iterations=150,
+            scale_sigma=sigma,
+        )[1].scale
+        for sigma in (0.05, 0.002)
+    }
+    assert fits[0.05] == pytest.approx(TRUE_SCALE, rel=0.02)
+    assert fits[0.002] == pytest.approx(1.0, abs=0.01)
+
+
 def test_fit_lengths_recovers_longer_thighs(human, scene):
     lengths = {"LeftLeg": 1.12, "RightLeg": 1.12, "LeftForeArm": 0.9, "RightForeArm": 0.9}
     truth = human.with_body(scale=TRUE_SCALE, lengths=lengths)
