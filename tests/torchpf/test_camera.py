@@ -84,7 +84,7 @@ def test_undistorted_projection_is_the_formula():
     other.name = "d"
     rig = CameraRig([cam, other])
     torch.testing.assert_close(
-        rig.to_camera(X), torch.stack([c.to_camera(X) for c in rig], -2), rtol=0, atol=1e-12
+        rig.to_camera(X), torch.stack([c.to_camera(X) for c in (cam, other)], -2), rtol=0, atol=1e-12
     )
 
 
