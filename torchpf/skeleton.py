@@ -59,8 +59,8 @@ from torchpf.kinematics.urdf import (
 _REVOLUTE, _PRISMATIC = "revolute", "prismatic"
 
 #: batch x nodes up to which FK composes the tree by pointer jumping instead of level by level (measured:
-#: the crossover on a CPU lies near 64 poses of a 38-node body)
-_JUMP_MAX_ROWS = 2048
+#: the crossover on a CPU lies near 90 poses of a 38-node body)
+_JUMP_MAX_ROWS = 3072
 
 
 def _skew(a: torch.Tensor) -> torch.Tensor:
@@ -462,7 +462,8 @@ class Skeleton(nn.Module):
         def compose_few(P, L):  # the same in fewer, larger operations (small batches)
             return torch.addcmul((P[:, :, :3].unsqueeze(3) * L.unsqueeze(1)).sum(2), P, col3)
 
-        if len(c["jumps"]) < len(c["levels"]) - 1 and B * loc.shape[0] <= _JUMP_MAX_ROWS:
+        few = B * loc.shape[0] <= _JUMP_MAX_ROWS
+        if few and len(c["jumps"]) < len(c["levels"]) - 1:
             # few poses: the operations' count is the cost, pointer jumping takes fewer rounds (constants)
             ext = torch.cat([loc, c["eye34"].expand(1, 3, 4, B)], 0)
             for anc in c["jumps"]:
@@ -493,9 +494,12 @@ class Skeleton(nn.Module):
             P = ext.index_select(0, c[f"par{g}"])  # (n, 3, 4, B)
             n, m = v.shape[0], len(self._groups[g])
             v = v.view(n, v.shape[1] // 3, 3, B)  # (n, m or 2m, 3, B)
-            w = P[:, None, :, 0] * v[:, :, 0:1]
-            w = torch.addcmul(w, P[:, None, :, 1], v[:, :, 1:2])
-            w = torch.addcmul(w, P[:, None, :, 2], v[:, :, 2:3])
+            if few:  # the rotation as one product and one sum (fewer operations, a larger temporary)
+                w = (P[:, None, :, :3] * v.unsqueeze(2)).sum(3)
+            else:
+                w = P[:, None, :, 0] * v[:, :, 0:1]
+                w = torch.addcmul(w, P[:, None, :, 1], v[:, :, 1:2])
+                w = torch.addcmul(w, P[:, None, :, 2], v[:, :, 2:3])
             axis_parts.append(w[:, :m].reshape(n * m, 3, B))
             if self._axis_pivots[g]:
                 pivot_parts.append((w[:, m:] + P[:, None, :, 3]).reshape(n * m, 3, B))  # points: translate
