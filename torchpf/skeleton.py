@@ -59,8 +59,8 @@ from torchpf.kinematics.urdf import (
 _REVOLUTE, _PRISMATIC = "revolute", "prismatic"
 
 #: batch x nodes up to which FK composes the tree by pointer jumping instead of level by level (measured:
-#: the crossover on a CPU lies near 90 poses of a 38-node body)
-_JUMP_MAX_ROWS = 3072
+#: the crossover on a CPU lies near 60 poses of a 38-node body)
+_JUMP_MAX_ROWS = 2048
 
 
 def _skew(a: torch.Tensor) -> torch.Tensor:
@@ -366,16 +366,7 @@ class Skeleton(nn.Module):
         c: dict = {}
         for g, (W, WA) in enumerate(self._coefficients):
             c[f"W{g}"] = W.to(device=device, dtype=dtype)
-            dofs = getattr(self, f"_fk_dofs{g}")
-            sig = self._groups[g]
-            # the group's DOFs of each kind, gathered by one index_select per kind: (kind, (n m_kind,)), and
-            # where DOF k of the run is found, (kind's part, its column)
-            kinds = sorted(set(sig))
-            c[f"dofs{g}"] = [
-                (kind, dofs[:, [k for k, s in enumerate(sig) if s == kind]].reshape(-1).to(device))
-                for kind in kinds
-            ]
-            c[f"cols{g}"] = [(kinds.index(s), sig[:k].count(s)) for k, s in enumerate(sig)]
+            c[f"dofs{g}"] = getattr(self, f"_fk_dofs{g}").to(device)
             if WA is not None:
                 c[f"WA{g}"] = WA.to(device=device, dtype=dtype)
                 c[f"par{g}"] = getattr(self, f"_fk_par{g}").to(device)
@@ -433,15 +424,11 @@ class Skeleton(nn.Module):
             if not sig:
                 local.append(W.expand(-1, -1, B))  # fixed joint: the static transform
                 continue
-            n = W.shape[0]
-            parts = [
-                feats[kind].index_select(0, rows).view(n, len(rows) // n, feats[kind].shape[1], B)
-                for kind, rows in c[f"dofs{g}"]
-            ]
+            dofs = c[f"dofs{g}"]
             mono = None
-            for part, col in c[f"cols{g}"]:
-                f = parts[part][:, col]  # (n, F, B)
-                mono = f if mono is None else (mono.unsqueeze(2) * f.unsqueeze(1)).flatten(1, 2)
+            for k, kind in enumerate(sig):
+                f = feats[kind].index_select(0, dofs[:, k])  # (n, F, B)
+                mono = f if mono is None else (mono[:, :, None] * f[:, None]).flatten(1, 2)
             if axes:
                 out = torch.bmm(c[f"WA{g}"], mono)
                 local.append(out[:, :12])
