@@ -10,7 +10,7 @@ so the rows are the per-frame step) and, in one process, the script times per fr
   ``dual_silhouette``, structural random walk, recovery on), the whole :meth:`~torchpf.Tracker.track`
   loop (masks read from disk included); ``apf, no recovery``: the same without the lost-track detector;
 * ``hybrid``: ``filter="hybrid"``, the default of ``track`` (APF layers, then projected Adam on ``K = 4``
-  poses);
+  poses); ``hybrid, no recovery``: the same without the lost-track detector (its periodic visual hull);
 * ``refine``: :class:`~torchpf.refine.Refiner` alone (the hybrid's default: 20 steps, ``K = 4`` poses near
   the truth; ``--refine-steps 10,15`` adds rows with other step counts, for the hybrid too, at the same
   budget) on each frame's fresh observation (its per-frame caches, the despeckled masks and distance
@@ -99,6 +99,9 @@ def measure(clip: str, work: Path, frames: int, repeat: int, paths, refine_steps
         rows["apf, no recovery"] = _track_row(tracker(filter="apf", recovery=False), seq.path, T, warmup)
     if "hybrid" in paths:
         rows["hybrid"] = _track_row(tracker(filter="hybrid"), seq.path, T, warmup)
+        rows["hybrid, no recovery"] = _track_row(
+            tracker(filter="hybrid", recovery=False), seq.path, T, warmup
+        )
         for steps in refine_steps:  # the same budget: fewer steps leave the APF layers more particles
             options = {"filter_options": {"refine_options": {"steps": steps}}}
             rows[f"hybrid, {steps} steps"] = _track_row(

@@ -138,7 +138,29 @@ def project_points(
         (..., 2) pixel coordinates (u right, v down). Points at or behind the camera plane give
         meaningless (but finite where z != 0) values; check :meth:`Camera.depth`.
     """
+    if dist is None:
+        # Without distortion the projection is linear up to the division: [u z, v z, z] = K' (R x + t), with
+        # K' the intrinsics the formula reads (K[1, 0] = 0, last row (0, 0, 1)). One matrix product and one
+        # division instead of a dozen passes over the points (a visual hull projects ~10^5 voxels).
+        Kp = K * _PINHOLE_MASK.to(K) + _PINHOLE_ONE.to(K)
+        h = _affine(points, Kp @ R, Kp @ t)
+        z = h[..., 2:]
+        return h[..., :2] / torch.where(z.abs() < 1e-12, torch.full_like(z, 1e-12), z)
     return _camera_to_pixels(points @ R.transpose(-1, -2) + t, K, dist)
+
+
+def _affine(points: torch.Tensor, A: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """``points @ A^T + b`` for (..., k) points, (n, k) ``A`` and (n,) ``b``: one ``addmm`` (the bias added
+    inside the matrix product, not in a second pass over the result: with 10^5 points both passes are
+    memory-bound)."""
+    if points.ndim < 2 or points.dtype != A.dtype or A.ndim != 2 or b.ndim != 1:
+        return points @ A.transpose(-1, -2) + b
+    return torch.addmm(b, points.reshape(-1, points.shape[-1]), A.t()).view(*points.shape[:-1], A.shape[0])
+
+
+#: the entries of K the projection reads (:func:`project_points`), and its fixed last row
+_PINHOLE_MASK = torch.tensor([[1.0, 1.0, 1.0], [0.0, 1.0, 1.0], [0.0, 0.0, 0.0]], dtype=torch.float64)
+_PINHOLE_ONE = torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
 
 
 def _camera_to_pixels(xc: torch.Tensor, K: torch.Tensor, dist: torch.Tensor | None) -> torch.Tensor:
@@ -241,7 +263,7 @@ class Camera:
     def to_camera(self, points: torch.Tensor) -> torch.Tensor:
         """(..., 3) world points -> (..., 3) camera-frame points ``R x + t`` (m)."""
         _, R, t, _ = self._params(points)
-        return points @ R.transpose(-1, -2) + t
+        return _affine(points, R, t)
 
     def depth(self, points: torch.Tensor) -> torch.Tensor:
         """(..., 3) world points -> (...,) depth along the optical axis (m); > 0 means in front."""
@@ -524,9 +546,9 @@ class CameraRig(nn.Module):
         """(..., 3) world points -> (..., V, 3) camera-frame points ``R_v x + t_v`` (m)."""
         _, R, t, _ = self._params(points)
         V = R.shape[0]
-        # One GEMM for all cameras: column (v, j) of R_all is row j of R_v.
-        R_all = R.permute(2, 0, 1).reshape(3, V * 3)
-        return (points @ R_all).unflatten(-1, (V, 3)) + t
+        # One GEMM for all cameras: row (v, j) of R_all is row j of R_v.
+        R_all = R.reshape(V * 3, 3)
+        return _affine(points, R_all, t.reshape(V * 3)).unflatten(-1, (V, 3))
 
     def project(self, points: torch.Tensor) -> torch.Tensor:
         """(..., 3) world points (m) -> (..., V, 2) pixels in every camera (OpenCV model, module docstring);

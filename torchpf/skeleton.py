@@ -9,7 +9,9 @@ particle filter step, IK iteration and annealing layer.
   recognised and hidden (see :meth:`Skeleton.from_urdf`).
 * Consecutive single-DOF motions between two body joints are fused into one rotation and translation per
   body joint, static offsets are precomputed, and the tree is traversed one depth level at a time (one
-  batched product per level, no Python loop over joints at call time).
+  batched product per level, no Python loop over joints at call time); for a few poses (a gradient
+  refinement's), where the number of operations is the cost, by pointer jumping instead (every node
+  composed with its ancestor 2^k levels up in round k: ceil(log2(depth)) rounds).
 * Transforms are carried as rotation ``(..., 3, 3)`` and translation ``(..., 3)`` instead of 4x4 matrices.
 * The topology (body joints, nodes and their runs, depth levels, revolute mask, bones, partition) is a public
   :class:`~torchpf.kinematics.tree.KinematicTree`, ``skel.tree``, which the IK Jacobian and the
@@ -55,6 +57,10 @@ from torchpf.kinematics.urdf import (
 )
 
 _REVOLUTE, _PRISMATIC = "revolute", "prismatic"
+
+#: batch x nodes up to which FK composes the tree by pointer jumping instead of level by level (measured:
+#: the crossover on a CPU lies near 60 poses of a 38-node body)
+_JUMP_MAX_ROWS = 2048
 
 
 def _skew(a: torch.Tensor) -> torch.Tensor:
@@ -377,6 +383,18 @@ class Skeleton(nn.Module):
             levels.append((start, end, _as_slice_or(rows, device)))
             prev = start
         c["levels"] = levels
+        # Pointer jumping (a parallel prefix product over the tree): round k composes every node with the
+        # ancestor 2^k edges up, so ceil(log2(depth)) rounds replace one round per level. It does more
+        # arithmetic (every node, every round), so it is used for small batches only, where the cost is the
+        # number of operations, not their size (see :meth:`_world`). Row M is the identity, every node's
+        # ancestor beyond its root, and its own.
+        M = self.tree.n_nodes
+        anc = torch.cat([torch.where(node_parent >= 0, node_parent, M), torch.tensor([M])])
+        jumps = []
+        while bool((anc[:M] < M).any()):
+            jumps.append(anc.to(device))
+            anc = anc[anc]
+        c["jumps"] = jumps
         c["eye34"] = torch.eye(3, 4, dtype=dtype, device=device)[None, :, :, None]
         c["col3"] = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=dtype, device=device).reshape(1, 1, 4, 1)
         return c
@@ -421,31 +439,54 @@ class Skeleton(nn.Module):
         if c["reorder"] is not None:
             loc = loc.index_select(0, c["reorder"])
         loc = loc.view(loc.shape[0], 3, 4, B)  # explicit sizes: B may be 0 (an empty batch)
-        world = []
         col3 = c["col3"]
-        for start, end, parent_rows in c["levels"]:
-            L = loc[start:end]
-            if parent_rows is not None:
-                prev = world[-1]
-                P = prev[parent_rows] if isinstance(parent_rows, slice) else prev.index_select(0, parent_rows)
-                # [R_p | t_p] @ [[R_l, t_l], [0, 1]] = [R_p R_l | R_p t_l + t_p]
-                T = torch.addcmul(P * col3, P[:, :, 0:1], L[:, 0:1])
-                T = torch.addcmul(T, P[:, :, 1:2], L[:, 1:2])
-                L = torch.addcmul(T, P[:, :, 2:3], L[:, 2:3])
-            world.append(L)
-        if not axes:
-            return torch.cat(world, 0) if len(world) > 1 else world[0]
-        # the parent frames of the runs, a root's being the identity (an appended row)
-        ext = torch.cat([*world, c["eye34"].expand(1, 3, 4, B)], 0)
-        world = ext[:-1]
+
+        def compose(P, L):  # [R_p | t_p] @ [[R_l, t_l], [0, 1]] = [R_p R_l | R_p t_l + t_p]
+            T = torch.addcmul(P * col3, P[:, :, 0:1], L[:, 0:1])
+            T = torch.addcmul(T, P[:, :, 1:2], L[:, 1:2])
+            return torch.addcmul(T, P[:, :, 2:3], L[:, 2:3])
+
+        def compose_few(P, L):  # the same in fewer, larger operations (small batches)
+            return torch.addcmul((P[:, :, :3].unsqueeze(3) * L.unsqueeze(1)).sum(2), P, col3)
+
+        few = B * loc.shape[0] <= _JUMP_MAX_ROWS
+        if few and len(c["jumps"]) < len(c["levels"]) - 1:
+            # few poses: the operations' count is the cost, pointer jumping takes fewer rounds (constants)
+            ext = torch.cat([loc, c["eye34"].expand(1, 3, 4, B)], 0)
+            for anc in c["jumps"]:
+                ext = compose_few(ext.index_select(0, anc), ext)
+            world = ext[:-1]
+            if not axes:
+                return world
+        else:
+            levels = []
+            for start, end, parent_rows in c["levels"]:
+                L = loc[start:end]
+                if parent_rows is not None:
+                    prev = levels[-1]
+                    P = (
+                        prev[parent_rows]
+                        if isinstance(parent_rows, slice)
+                        else prev.index_select(0, parent_rows)
+                    )
+                    L = compose(P, L)
+                levels.append(L)
+            if not axes:
+                return torch.cat(levels, 0) if len(levels) > 1 else levels[0]
+            # the parent frames of the runs, a root's being the identity (an appended row)
+            ext = torch.cat([*levels, c["eye34"].expand(1, 3, 4, B)], 0)
+            world = ext[:-1]
         axis_parts, pivot_parts = [], [world[:, :, 3]]
         for g, v in run_axes:
             P = ext.index_select(0, c[f"par{g}"])  # (n, 3, 4, B)
             n, m = v.shape[0], len(self._groups[g])
             v = v.view(n, v.shape[1] // 3, 3, B)  # (n, m or 2m, 3, B)
-            w = P[:, None, :, 0] * v[:, :, 0:1]
-            w = torch.addcmul(w, P[:, None, :, 1], v[:, :, 1:2])
-            w = torch.addcmul(w, P[:, None, :, 2], v[:, :, 2:3])
+            if few:  # the rotation as one product and one sum (fewer operations, a larger temporary)
+                w = (P[:, None, :, :3] * v.unsqueeze(2)).sum(3)
+            else:
+                w = P[:, None, :, 0] * v[:, :, 0:1]
+                w = torch.addcmul(w, P[:, None, :, 1], v[:, :, 1:2])
+                w = torch.addcmul(w, P[:, None, :, 2], v[:, :, 2:3])
             axis_parts.append(w[:, :m].reshape(n * m, 3, B))
             if self._axis_pivots[g]:
                 pivot_parts.append((w[:, m:] + P[:, None, :, 3]).reshape(n * m, 3, B))  # points: translate

@@ -67,6 +67,27 @@ def test_project_batched_shapes_and_gradient():
     assert torch.autograd.gradcheck(lambda K, d: project_points(X[0, 0], K, cam.R, cam.t, d), (K, d))
 
 
+def test_undistorted_projection_is_the_formula():
+    """Without distortion the projection is one matrix product with K R folded (and the entries of K the
+    formula does not read ignored): the same pixels and gradients as the step-by-step formula."""
+    from torchpf.camera import _camera_to_pixels
+
+    cam = random_camera(np.random.default_rng(2), dist=False)
+    X = torch.randn(3, 6, 3, dtype=torch.float64) * 0.5
+    K = cam.K.clone()
+    K[1, 0], K[2] = 7.0, torch.tensor([0.1, 0.2, 3.0], dtype=torch.float64)  # not read by the formula
+    ref = _camera_to_pixels(X @ cam.R.T + cam.t, K, None)
+    torch.testing.assert_close(project_points(X, K, cam.R, cam.t), ref, rtol=0, atol=1e-9)
+    args = [t.clone().requires_grad_() for t in (X[0], cam.K, cam.R, cam.t)]
+    assert torch.autograd.gradcheck(lambda *a: project_points(*a), args)
+    other = random_camera(np.random.default_rng(3), dist=False)
+    other.name = "d"
+    rig = CameraRig([cam, other])
+    torch.testing.assert_close(
+        rig.to_camera(X), torch.stack([c.to_camera(X) for c in (cam, other)], -2), rtol=0, atol=1e-12
+    )
+
+
 def test_depth_in_front_and_center():
     cam = look_at((0.0, -4.0, 1.5), (0.0, 0.0, 1.0), width=160, height=120)
     np.testing.assert_allclose(cam.center.numpy(), [0.0, -4.0, 1.5], atol=1e-12)

@@ -453,6 +453,33 @@ def _area_points(caps: Capsules2D, n_body: int, n_cap: int, generator=None, deri
     return px, py, k
 
 
+def _cap_rows(cos_c: torch.Tensor, sin_c: torch.Tensor) -> dict[str, torch.Tensor]:
+    """The caps' unit samples as rows over both caps' ``2 n_cap`` points (the cap of ``pa``, then that of
+    ``pb``), zero on the other cap, so that a cap term is one product of a row with a per-capsule scalar
+    for both caps at once: ``ca = (-cos_a, 0)``, ``cb = (0, cos_b)``, ``sa = (sin_a, 0)``, ``sb = (0,
+    sin_b)``, and the indicators ``ea = (1, 0)``, ``eb = (0, 1)``."""
+    z = torch.zeros_like(cos_c[..., 0, :])
+    one = torch.ones_like(z)
+    cos_a, cos_b, sin_a, sin_b = cos_c[..., 0, :], cos_c[..., 1, :], sin_c[..., 0, :], sin_c[..., 1, :]
+    rows = {
+        "ca": (-cos_a, z),
+        "cb": (z, cos_b),
+        "sa": (sin_a, z),
+        "sb": (z, sin_b),
+        "ea": (one, z),
+        "eb": (z, one),
+    }
+    return {k: torch.cat(v, -1) for k, v in rows.items()}
+
+
+@functools.lru_cache(maxsize=64)
+def _fixed_cap_rows(n_body: int, n_cap: int, dtype, device) -> dict[str, torch.Tensor]:
+    """:func:`_cap_rows` of the fixed pattern (:func:`_fixed_unit_samples`), built once."""
+    with torch.inference_mode(False):
+        _, _, cos_c, sin_c = _fixed_unit_samples(n_body, n_cap, dtype, device)
+        return _cap_rows(cos_c, sin_c)
+
+
 def _point_coordinates(L, ra, rb, valid, n_body: int, n_cap: int, generator=None, derivatives: bool = False):
     """The points of :func:`sample_in_capsules` in the frame of capsules of axis length ``L`` (clamped to
     1e-9) and radii ``ra``, ``rb`` (..., C): ``p = pa + alpha e + beta n`` with ``e = pb - pa`` and its
@@ -461,74 +488,66 @@ def _point_coordinates(L, ra, rb, valid, n_body: int, n_cap: int, generator=None
     Returns ``alpha``, ``beta``, ``w`` (..., C, M) with M = n_body + 2 n_cap (body points, then the caps of
     ``pa`` and of ``pb``); with ``derivatives`` also their derivatives in ``ra``, ``rb`` and ``L``: three
     (..., C, 3 M) tensors ``[d alpha, d beta, d w]`` (with ``dL/de = e / L`` the points' and areas'
-    Jacobian in the capsule, :func:`torchpf.geometry.capsule_chamfer`)."""
+    Jacobian in the capsule, :func:`torchpf.geometry.capsule_chamfer`).
+
+    The caps' terms are products of per-capsule scalars with the rows of :func:`_cap_rows` (both caps in
+    one operation): a refinement step evaluates this for a few poses, where the number of operations is
+    the cost."""
     batch = L.shape
     u, h, cos_c, sin_c = _unit_samples(n_body, n_cap, generator, L.dtype, L.device, tuple(batch))
+    rows = _fixed_cap_rows(n_body, n_cap, L.dtype, L.device) if generator is None else _cap_rows(cos_c, sin_c)
+    ca, cb, sa, sb, ea, eb = (rows[k] for k in ("ca", "cb", "sa", "sb", "ea", "eb"))
     inv = L.reciprocal().unsqueeze(-1)  # (reciprocal: 1.0 / tensor dispatches through Python)
     # Body: t has density proportional to r(t) = ra + t (rb - ra) (inverse CDF of a linear density:
     # ra t + qa t^2 = qc), the offset across the axis is (2 s - 1) r(t).
     ra_, rb_ = ra.unsqueeze(-1), rb.unsqueeze(-1)
-    qa = 0.5 * (rb_ - ra_)
-    qc = u * 0.5 * (ra_ + rb_)
-    t = 2 * qc / (ra_ + (ra_ * ra_ + 4 * qa * qc).clamp_min(0).sqrt()).clamp_min(1e-12)
-    rt = ra_ + t * (rb_ - ra_)
+    dr = rb_ - ra_
+    qc = u * (0.5 * (ra_ + rb_))
+    t = 2 * qc / (ra_ + torch.addcmul(ra_ * ra_, dr, qc, value=2.0).clamp_min(0).sqrt()).clamp_min(1e-12)
+    rt = torch.addcmul(ra_, t, dr)
     # Caps: uniform in a half-disc facing away from the other end (centre pa: along -e; pb: along +e).
     ra_l, rb_l = ra_ * inv, rb_ * inv
-    cos_a, cos_b, sin_a, sin_b = cos_c[..., 0, :], cos_c[..., 1, :], sin_c[..., 0, :], sin_c[..., 1, :]
-    alpha = torch.cat([t, -cos_a * ra_l, 1 + cos_b * rb_l], -1)
-    beta = torch.cat([h * rt * inv, sin_a * ra_l, sin_b * rb_l], -1)
+    cap_a = torch.addcmul(ca * ra_l, cb, rb_l)  # alpha of the caps less their start (0 for pa, 1 for pb)
+    alpha = torch.cat([t, cap_a + eb], -1)
+    body_beta = h * rt * inv
+    beta = torch.cat([body_beta, torch.addcmul(sa * ra_l, sb, rb_l)], -1)
     half_disc = 0.5 * math.pi / n_cap
     valid = valid.unsqueeze(-1).to(L.dtype)
-    w = (
-        torch.cat(
-            [
-                (L * (ra + rb) / n_body).unsqueeze(-1).expand(*batch, n_body),
-                (half_disc * ra * ra).unsqueeze(-1).expand(*batch, n_cap),
-                (half_disc * rb * rb).unsqueeze(-1).expand(*batch, n_cap),
-            ],
-            -1,
-        )
-        * valid
+    vh = valid * half_disc
+    w = torch.cat(
+        [
+            ((L.unsqueeze(-1) * valid) * ((ra_ + rb_) / n_body)).expand(*batch, n_body),
+            torch.addcmul(ea * (ra_ * ra_ * vh), eb, rb_ * rb_ * vh),
+        ],
+        -1,
     )
     if not derivatives:
         return alpha, beta, w
     # implicit derivatives of the body's t: F = ra t + qa t^2 - qc = 0, dF/dt = r(t)
-    t_ra = (0.5 * (t * t + u) - t) / rt
-    t_rb = 0.5 * (u - t * t) / rt
+    irt = rt.reciprocal()
+    tt = t * t
+    t_ra = (0.5 * (tt + u) - t) * irt
+    t_rb = 0.5 * (u - tt) * irt
     hi = h * inv
-    zb, zc = torch.zeros_like(t), torch.zeros_like(ra_l.expand(*batch, n_cap))
-    wb = (L / n_body).unsqueeze(-1).expand(*batch, n_body) * valid
-    # d / dL: -x / L for beta and the caps' alpha - alpha_0 (the cap of pb starts at 1)
-    a_L = torch.cat([zb, alpha[..., n_body:] - torch.cat([zc, 1 + zc], -1)], -1) * -inv
+    wb = ((L.unsqueeze(-1) * valid) / n_body).expand(*batch, n_body)
+    zb = torch.zeros_like(t)
+    ninv = -inv
     d_ra = torch.cat(
+        [t_ra, ca * inv, hi * torch.addcmul(torch.rsub(t, 1.0), dr, t_ra), sa * inv, wb, ea * (2 * vh * ra_)],
+        -1,
+    )
+    d_rb = torch.cat([t_rb, cb * inv, hi * torch.addcmul(t, dr, t_rb), sb * inv, wb, eb * (2 * vh * rb_)], -1)
+    # d / dL: -x / L for beta and the caps' alpha - alpha_0 (the cap of pb starts at 1)
+    d_L = torch.cat(
         [
-            t_ra,
-            -cos_a * inv,
-            zc,
-            hi * (torch.rsub(t, 1.0) + (rb_ - ra_) * t_ra),
-            sin_a * inv,
-            zc,
-            wb,
-            2 * half_disc * ra_ * valid + zc,
-            zc,
+            zb,
+            cap_a * ninv,
+            beta * ninv,
+            (valid * (ra_ + rb_) / n_body).expand(*batch, n_body),
+            torch.zeros_like(cap_a),
         ],
         -1,
     )
-    d_rb = torch.cat(
-        [
-            t_rb,
-            zc,
-            cos_b * inv,
-            hi * (t + (rb_ - ra_) * t_rb),
-            zc,
-            sin_b * inv,
-            wb,
-            zc,
-            2 * half_disc * rb_ * valid + zc,
-        ],
-        -1,
-    )
-    d_L = torch.cat([a_L, beta * -inv, (ra_ + rb_) / n_body * valid + zb, zc, zc], -1)
     return alpha, beta, w, (d_ra, d_rb, d_L)
 
 

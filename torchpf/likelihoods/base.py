@@ -18,7 +18,7 @@ Example::
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 from torch import nn
@@ -44,6 +44,9 @@ class Body:
         joints: (B, J, 3) world joint positions (m), ``skeleton.fk(theta)``.
         ends: (B, C, 2, 3) parent and child joint of each bone, the capsule axes (Hauberg §5).
         radii: (C,) capsule radii (m), dtype and device of ``theta``.
+
+    What the cues derive from the body and could share (the capsules projected into a rig) is kept by
+    :meth:`shared` for the body's lifetime: one evaluation of a product likelihood.
     """
 
     theta: torch.Tensor
@@ -51,6 +54,20 @@ class Body:
     joints: torch.Tensor
     ends: torch.Tensor
     radii: torch.Tensor
+    _shared: dict = field(default_factory=dict, repr=False)
+
+    def shared(self, key, owner, build):
+        """``build()``, computed once per ``key`` for this body and handed to every cue that asks with the
+        same ``key`` and the same ``owner`` object (e.g. the camera rig the capsules are projected into: the
+        silhouette and dual-silhouette terms of a product likelihood project the same capsules into the
+        same cameras). The value is kept with its owner, so an owner's ``id`` is never reused while the body
+        lives; another owner under the same key rebuilds."""
+        hit = self._shared.get(key)
+        if hit is not None and hit[0] is owner:
+            return hit[1]
+        value = build()
+        self._shared[key] = (owner, value)
+        return value
 
     @classmethod
     def of(cls, skeleton, theta: torch.Tensor, bone_index: torch.Tensor | None = None) -> Body:

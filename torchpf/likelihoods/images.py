@@ -82,11 +82,15 @@ class ImageLikelihood(Likelihood):
         (:func:`_sample`, :func:`~torchpf.geometry.capsule_coverage`). ``offset``: the masks' outline offset
         ``(*S, V)`` pixels (:attr:`Silhouettes.offset`) added to every projected radius (kept >= 0.5 px); a
         capsule whose radii both fall to 0.5 px or less is marked invalid in that camera."""
-        a, b, r = body.capsules(self.bones)
-        caps = project_capsules(self.cameras.resized(width, height), a, b, r)  # (B, V, C)
-        pa, pb, ra, rb, valid = (
-            _camera_major(f, S) for f in (caps.pa, caps.pb, caps.ra, caps.rb, caps.valid)
-        )
+        rig = self.cameras.resized(width, height)
+
+        def project():
+            caps = project_capsules(rig, *body.capsules(self.bones))  # (B, V, C)
+            return tuple(_camera_major(f, S) for f in (caps.pa, caps.pb, caps.ra, caps.rb, caps.valid))
+
+        # computed once for the cues of a product likelihood that project the same bones into the same rig
+        bones = None if self.bones is None else tuple(self.bones)
+        pa, pb, ra, rb, valid = body.shared(("caps2d", bones, S), rig, project)
         if offset is not None:
             off = _per_camera(offset.to(ra), S, 0).unsqueeze(-1)  # (S, V, 1, 1)
             ra, rb = ra + off, rb + off

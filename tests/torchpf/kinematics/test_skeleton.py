@@ -202,3 +202,21 @@ def test_dof_joints_name_the_moved_joint():
         "wrist": "hand",
         "hip": "leg",
     }
+
+
+@pytest.mark.parametrize("n", [1, 5, 300])
+def test_fk_paths_agree_with_pytorch_kinematics(skel, n, random_poses, monkeypatch):
+    """Both ways of composing the tree (pointer jumping for few poses, one depth level at a time for many)
+    give pytorch-kinematics' transforms and the same DOF axes, whichever the batch size."""
+    import torchpf.skeleton as module
+
+    theta = random_poses(skel, (n,), torch.float64, seed=3)
+    ref = pk_reference(skel, theta)
+    out = {}
+    for rows in (0, 10**9):  # the levels for every batch, then pointer jumping for every batch
+        monkeypatch.setattr(module, "_JUMP_MAX_ROWS", rows)
+        assert (skel.transforms(theta) - ref).abs().max().item() < 1e-10
+        out[rows] = skel.fk_with_axes(theta)
+        torch.testing.assert_close(out[rows][2].permute(2, 0, 1), ref[..., :3, 3], rtol=0, atol=1e-10)
+    for a, b in zip(out[0], out[10**9], strict=True):
+        torch.testing.assert_close(a, b, rtol=0, atol=1e-12)

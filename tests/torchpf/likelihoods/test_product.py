@@ -89,6 +89,27 @@ def test_product_computes_forward_kinematics_once(skel, truth, rig, depth_cam, f
     assert counting.fk_calls == 2 + len(terms)
 
 
+def test_product_projects_the_capsules_once_per_rig_and_bones(skel, truth, rig, frame, monkeypatch):
+    """The silhouette and dual-silhouette terms project the same capsules into the same rig: once per body
+    (Body.shared); a term scoring a subset of the bones projects its own."""
+    import torchpf.likelihoods.images as images
+
+    calls = []
+    project = images.project_capsules
+    monkeypatch.setattr(images, "project_capsules", lambda *a, **k: calls.append(1) or project(*a, **k))
+    terms = {
+        "silhouette": SilhouetteLikelihood(skel, rig),
+        "dual": DualSilhouetteLikelihood(skel, rig),
+        "limbs": DualSilhouetteLikelihood(skel, rig, bones=[0, 1, 2]),
+    }
+    prod = ProductLikelihood(terms)
+    thetas, _ = sweep(truth, skel, "LeftArm_Yrotation", n=5)
+    vals = prod(thetas, frame)
+    assert len(calls) == 2
+    alone = {k: t(thetas, frame) for k, t in terms.items()}
+    torch.testing.assert_close(vals, sum(alone.values()), rtol=1e-12, atol=1e-9)
+
+
 def test_make_likelihood_by_name(skel, rig):
     assert isinstance(make_likelihood(skel, rig, "silhouette"), SilhouetteLikelihood)
     pc = make_likelihood(skel, None, "pointcloud", {"pointcloud": {"sigma": 0.05}})
