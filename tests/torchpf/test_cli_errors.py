@@ -140,6 +140,9 @@ def test_ctrl_c_prints_interrupted_and_exits_130(seq_dir, tmp_path):
         [*argv, str(tmp_path / "t.csv"), "--particles", "50000", "--threads", "1"],
         stderr=subprocess.PIPE,
         text=True,
+        # a test runner's worker may ignore SIGINT, and a child inherits that (Python then installs no
+        # KeyboardInterrupt handler): give the CLI the disposition a terminal user's process has
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
     proc.stderr.read(1)  # the progress bar: the run has started
     proc.send_signal(signal.SIGINT)
