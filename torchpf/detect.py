@@ -44,6 +44,7 @@ Example::
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -341,13 +342,28 @@ class PersonDetector:
         self.groups = body_partition(skeleton, per_limb=True)  # DOF indices: torso with the root, each limb
         self.lateral = self._lateral(rest)
         self.forward = self._forward(rest)
-        self.postures = self._postures(rest)
-        # searched apart (:meth:`search`): standing / arms half down / rest, then each stride
-        self.posture_strata = [[0, 3, 4], [1], [2]] + [[k] for k in range(5, len(self.postures))]
-        # fitted by :meth:`fit`: standing and every stride (walking and running)
-        self.fit_postures = [0, 1, 2, *range(5, len(self.postures))]
         self.headings = torch.arange(headings, dtype=torch.float64) * (2 * math.pi / headings)
-        self.heading_dofs = self._heading_dofs(rest)
+        # the postures and headings' root rotations (IK, ~0.2 s) are built on first use: the tracker's
+        # lost-track check only carves visual hulls, and most tracks never search
+
+    @functools.cached_property
+    def postures(self) -> Tensor:
+        return self._postures(self.rest)
+
+    @property
+    def posture_strata(self) -> list[list[int]]:
+        """Posture indices searched apart (:meth:`search`): standing / arms half down / rest, then each
+        stride."""
+        return [[0, 3, 4], [1], [2]] + [[k] for k in range(5, len(self.postures))]
+
+    @property
+    def fit_postures(self) -> list[int]:
+        """Posture indices fitted by :meth:`fit`: standing and every stride (walking and running)."""
+        return [0, 1, 2, *range(5, len(self.postures))]
+
+    @functools.cached_property
+    def heading_dofs(self) -> Tensor:
+        return self._heading_dofs(self.rest)
 
     # ------------------------------------------------------------------ structure
     def _limbs(self, parents: list[int], rest: Tensor) -> list[_Limb]:
