@@ -348,6 +348,7 @@ class PersonDetector:
 
     @functools.cached_property
     def postures(self) -> Tensor:
+        """(P, D) canonical postures, root at rest (standing, arms half down, rest, strides)."""
         return self._postures(self.rest)
 
     @property
@@ -363,6 +364,7 @@ class PersonDetector:
 
     @functools.cached_property
     def heading_dofs(self) -> Tensor:
+        """(headings, R) the root's rotation DOFs that turn the body to each of :attr:`headings`."""
         return self._heading_dofs(self.rest)
 
     # ------------------------------------------------------------------ structure
