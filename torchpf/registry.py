@@ -3,8 +3,10 @@
 A :class:`Registry` maps lower-case names to objects (functions, classes or factories). Code inside the
 library registers with the :meth:`Registry.register` decorator; outside packages register through a
 ``importlib.metadata`` entry-point group (loaded lazily on first lookup), which is how ``priors`` offers its
-motion priors to ``torchpf`` without ``torchpf`` importing ``priors``. A lookup of an unknown name raises a
-``ValueError`` that lists the registered names, so a CLI can print it as a one-line error.
+motion priors to ``torchpf`` without ``torchpf`` importing ``priors``. A source checkout run without being
+installed has no metadata: its ``pyproject.toml`` then lists the group (:func:`checkout_entry_points`). A
+lookup of an unknown name raises a ``ValueError`` that lists the registered names, so a CLI can print it as a
+one-line error.
 
 Example::
 
@@ -20,10 +22,32 @@ Example::
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator, Mapping
-from importlib.metadata import entry_points
+from importlib.metadata import EntryPoint, entry_points
+from pathlib import Path
 from typing import Any, Generic, TypeVar
 
 T = TypeVar("T")
+
+#: the pyproject.toml of a source checkout that holds this package
+_PYPROJECT = Path(__file__).resolve().parents[1] / "pyproject.toml"
+
+
+def checkout_entry_points(group: str, pyproject: str | Path = _PYPROJECT) -> dict[str, EntryPoint]:
+    """The ``group`` entry points that torchpf's own ``pyproject.toml`` declares, for code run from a source
+    checkout that was never installed (``PYTHONPATH=.``, a notebook beside the sources, a copy on a GPU
+    machine): there no package metadata lists them. ``{}`` when ``pyproject`` is absent, is another project's,
+    or cannot be read (Python 3.10 has no ``tomllib``)."""
+    try:
+        import tomllib
+
+        data = tomllib.loads(Path(pyproject).read_text(encoding="utf-8"))
+    except (ImportError, OSError, ValueError):
+        return {}
+    project = data.get("project", {})
+    if project.get("name") != "torchpf":
+        return {}
+    table = project.get("entry-points", {}).get(group, {})
+    return {name.lower(): EntryPoint(name, value, group) for name, value in table.items()}
 
 
 class Registry(Mapping[str, T], Generic[T]):
@@ -63,7 +87,9 @@ class Registry(Mapping[str, T], Generic[T]):
     # ------------------------------------------------------------------ lookup
     def _outside(self) -> dict[str, Any]:
         if self._entry_points is None:
-            self._entry_points = {ep.name.lower(): ep for ep in entry_points(group=self.entry_point_group)}
+            found = {ep.name.lower(): ep for ep in entry_points(group=self.entry_point_group)}
+            # an installed torchpf lists its entry points in its metadata; a bare checkout, in its pyproject
+            self._entry_points = found or checkout_entry_points(self.entry_point_group)
         return self._entry_points
 
     def _key(self, name: str) -> str:
@@ -88,6 +114,12 @@ class Registry(Mapping[str, T], Generic[T]):
         except KeyError:
             if default is not None:
                 return default
+            if not self.names() and self.entry_point_group:
+                raise ValueError(
+                    f"unknown {self.kind} {name!r}: none is registered. They come from the "
+                    f"{self.entry_point_group!r} entry points of an installed torchpf: pip install torchpf "
+                    "(or pip install -e . in a checkout)"
+                ) from None
             raise ValueError(f"unknown {self.kind} {name!r}; choose from {self.names()}") from None
 
     def canonical(self, name: str) -> str:

@@ -35,3 +35,28 @@ def test_entry_points_are_loaded_lazily():
     from priors.factories import random_walk
 
     assert reg.get("random_walk") is random_walk
+
+
+def test_a_checkout_that_was_never_installed_reads_its_pyproject(monkeypatch, tmp_path):
+    """Run from the sources without package metadata (PYTHONPATH=., as on a bare GPU machine), the motion
+    priors come from the checkout's pyproject.toml: the same names and objects as the installed metadata."""
+    from importlib.metadata import entry_points
+
+    import torchpf.registry as registry
+
+    installed = {ep.name: ep.value for ep in entry_points(group="torchpf.dynamics")}
+    declared = registry.checkout_entry_points("torchpf.dynamics")
+    assert {name: ep.value for name, ep in declared.items()} == installed
+    monkeypatch.setattr(registry, "entry_points", lambda group: [])
+    reg = Registry("dynamics", entry_point_group="torchpf.dynamics")
+    from priors.factories import random_walk
+
+    assert reg.get("random_walk") is random_walk and set(reg.names()) == set(installed)
+    # another project's pyproject, or none: nothing registered, and the error says how to get them
+    other = tmp_path / "pyproject.toml"
+    other.write_text('[project]\nname = "other"\n[project.entry-points."torchpf.dynamics"]\nx = "a:b"\n')
+    assert registry.checkout_entry_points("torchpf.dynamics", other) == {}
+    assert registry.checkout_entry_points("torchpf.dynamics", tmp_path / "missing.toml") == {}
+    monkeypatch.setattr(registry, "checkout_entry_points", lambda group: {})
+    with pytest.raises(ValueError, match=r"none is registered.*pip install -e \."):
+        Registry("dynamics", entry_point_group="torchpf.dynamics").get("random_walk")
