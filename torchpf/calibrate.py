@@ -47,6 +47,7 @@ import numpy as np
 import torch
 
 from torchpf.camera import CameraRig
+from torchpf.devices import on_cpu
 from torchpf.geometry import project_capsules, sample_in_capsules
 from torchpf.kinematics.tree import body_partition, children_of
 from torchpf.observations import Silhouettes
@@ -431,11 +432,14 @@ def fit_body(
 
     Returns:
         ``(fitted, report)``: ``skeleton.with_body(...)`` with the fitted radii, scale and lengths (the
-        refined poses are valid poses of it), and a :class:`CalibrationReport`.
+        refined poses are valid poses of it), and a :class:`CalibrationReport`. The fit runs on the CPU
+        (OpenCV rasterises the masks' active pixels): ``fitted`` is on the CPU whatever the device of
+        ``skeleton``, which is not moved.
     """
     t_start = time.perf_counter()
+    skeleton, cameras = on_cpu(skeleton), on_cpu(cameras)  # OpenCV rasterises on the CPU
     D = len(skeleton.dof_names)
-    poses = torch.as_tensor(poses, dtype=torch.float64)
+    poses = torch.as_tensor(poses, dtype=torch.float64).cpu()
     if poses.ndim != 2 or poses.shape[1] != D:
         raise ValueError(f"poses must have shape (F, {D}), got {tuple(poses.shape)}")
     idx = (

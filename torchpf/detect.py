@@ -52,6 +52,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from torchpf.devices import on_cpu
 from torchpf.distributions import as_generator, wrap_angle
 from torchpf.filters.annealed import anneal_beta
 from torchpf.filters.weights import temper
@@ -192,7 +193,8 @@ def visual_hull(
     """Carve the visual hull of one frame's silhouettes and summarise it (module docstring).
 
     Args:
-        cameras: :class:`~torchpf.camera.CameraRig` of the masks (any image size: resized to the masks).
+        cameras: :class:`~torchpf.camera.CameraRig` of the masks (any image size: resized to the masks; any
+            device: the hull is carved on the CPU).
         obs: a Frame / Silhouettes / (V, H, W) masks.
         voxel: voxel edge (m).
         half_extent: half-size (m) of the carved box around the triangulated silhouette centroids.
@@ -206,7 +208,7 @@ def visual_hull(
     masks, valid = got
     V, H, W = masks.shape
     area = masks.flatten(1).sum(1).double() * valid
-    rig = cameras.resized(W, H)
+    rig = on_cpu(cameras).resized(W, H)  # carved on the CPU, as the masks are
     centre = _triangulate_centroids(rig, masks, valid & (area > 0))
     if centre is None:
         return None
@@ -317,6 +319,9 @@ class PersonDetector:
     def __init__(
         self, skeleton, cameras, *, headings: int = 24, voxel: float = 0.04, posture_sigma: float = 0.5
     ):
+        # the detector's search is CPU-side geometry in float64 (OpenCV, the visual hull, IK); a tracker on a
+        # GPU keeps its own skeleton and rig there and gets its particles back on its device (`search`)
+        skeleton, cameras = on_cpu(skeleton), on_cpu(cameras)
         self.skeleton = skeleton
         self.posture_sigma = float(posture_sigma)
         self.cameras = cameras

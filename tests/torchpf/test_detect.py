@@ -99,6 +99,20 @@ def test_auto_init_finds_the_pose(case):
     assert float(err[0]) < 0.12  # benchmarks/auto_init.py: the measured rate over 12 cases in BENCHMARKS.md
 
 
+def test_auto_init_on_the_particles_device(case, device):
+    """init="auto" with the tracker on ``device``: the detector's search and the body fit hand their pose
+    to particles there."""
+    from benchmarks.auto_init import joint_error
+
+    tracker = Tracker(case.skeleton, case.cameras, n_particles=300, fps=30.0, progress=False, device=device)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the uncalibrated-body warning, expected here
+        result = tracker.track(case.frames, init="auto", seed=0)
+    assert result.init == "auto" and torch.isfinite(result.angles).all()
+    err = joint_error(case, result.skeleton.cpu(), result.angles.cpu())
+    assert float(err[0]) < 0.12  # the bound of test_auto_init_finds_the_pose
+
+
 def test_init_from_truth_csv_or_error(case, tmp_path):
     from torchpf.io import write_mocap_csv
 

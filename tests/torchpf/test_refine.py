@@ -5,6 +5,7 @@ with OpenCV), not from torchpf.synth or torchpf.geometry, so the refiner's optim
 to the capsule model's pixel-level differences, not a copy of its own rendering.
 """
 
+import copy
 import math
 
 import numpy as np
@@ -120,6 +121,21 @@ def test_refiner_brings_perturbed_poses_back(human, scene):
         after.append(_mpjpe(human, out.x, truth))
     # measured: about 55 mm -> 25 mm; the capsule model differs from the renderer's hulls by a pixel
     assert np.mean(after) < 0.6 * np.mean(before), (before, after)
+
+
+def test_refiner_follows_the_poses_device(human, scene, device):
+    """The refiner runs where its poses are (one device rule) and lands where the CPU's run lands."""
+    g = torch.Generator().manual_seed(2)
+    truth, obs = scene["poses"][1], scene["obs"][1]
+    start = human.clamp(truth + 0.05 * torch.randn(2, len(truth), generator=g, dtype=torch.float64))
+    cpu = Refiner(human, scene["rig"], steps=15).double()(start, obs)
+    # a copy: .to() moves a module's skeleton in place, and `human` is shared by the session's tests
+    refiner = Refiner(copy.deepcopy(human), copy.deepcopy(scene["rig"]), steps=15).double().to(device)
+    out = refiner(start.to(device), obs)
+    assert out.x.device.type == device.type and out.loss.device.type == device.type
+    # float64 on both: the runs agree to rounding, well inside a millimetre of joint position
+    assert _mpjpe(human, out.x.cpu(), cpu.x) < 1e-3
+    torch.testing.assert_close(out.loss.cpu(), cpu.loss, rtol=1e-6, atol=1e-9)
 
 
 def test_refiner_is_batch_independent_and_respects_frozen_dofs(human, scene):

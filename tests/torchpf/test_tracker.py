@@ -227,6 +227,20 @@ def test_to_moves_the_computation(scene, device, dtype):
         tracker.to(torch.int64)
 
 
+def test_the_default_hybrid_runs_on_the_particles_device(scene, device):
+    """`track`'s default filter (APF layers, then gradient refinement) and the lost-track detector on
+    ``device``: the refiner's poses and the detector's visual hull follow the tracker there."""
+    skel, cams, seq, angles = scene
+    tracker = Tracker(skel, cams, dynamics=walk(), n_particles=300, progress=False, device=device)
+    assert tracker.filter_name == "hybrid" and tracker.device.type == device.type
+    result = tracker.track(seq, seed=0, calibrate=False)
+    assert torch.isfinite(result.angles).all() and not result.failed.any()
+    truth = skel.fk(angles)
+    error = float(metrics.mpjpe(truth, skel.fk(result.angles.cpu().to(angles.dtype))))
+    static = float(metrics.mpjpe(truth, skel.fk(angles[:1].expand_as(angles))))
+    assert error < 0.3 * static, (error, static)
+
+
 @pytest.mark.parametrize("name", ["sir", "qrs", "apf", "partitioned", "mcmc"])
 def test_a_run_draws_only_from_its_own_generator(scene, name):
     """A second CPU generator (the global one) must not be touched: code that forgets to pass the
