@@ -37,12 +37,22 @@ __all__ = [
 # Elements (poses x capsules x points) per chunk of the distance kernels: large enough that per-op
 # overhead is amortised, small enough (~1 MB per float32 temporary) to stay in the L2 cache.
 _CHUNK_ELEMENTS = 1 << 18
+# On a GPU the kernel launches per chunk are the cost, not the cache: chunks there only bound the memory
+# (64 MB per float32 temporary). On an H200 with the CPU's chunk sizes (BENCHMARKS.md), the dual silhouette
+# cue (~800 chunks at 10,000 poses) and the point-cloud cue (~1,000) ran no faster than 16 CPU cores.
+_GPU_CHUNK_ELEMENTS = 1 << 24
 
 
-def _chunk_rows(per_row: int, chunk_size: int | None) -> int:
+def chunk_elements(device: torch.device | str, cpu_elements: int = _CHUNK_ELEMENTS) -> int:
+    """Elements per chunk of a chunked kernel on ``device``: ``cpu_elements`` on the CPU (cache-sized), at
+    least ``2^24`` elsewhere (memory-bounded)."""
+    return cpu_elements if torch.device(device).type == "cpu" else max(cpu_elements, _GPU_CHUNK_ELEMENTS)
+
+
+def _chunk_rows(per_row: int, chunk_size: int | None, device: torch.device | str = "cpu") -> int:
     if chunk_size is not None:
         return max(1, int(chunk_size))
-    return max(1, _CHUNK_ELEMENTS // max(1, per_row))
+    return max(1, chunk_elements(device) // max(1, per_row))
 
 
 # ---------------------------------------------------------------------- 3D distances
@@ -150,7 +160,7 @@ def _capsule_sdf_chunks(
     inplace = not (
         torch.is_grad_enabled() and any(x.requires_grad for x in (points, a, b, radius) if x is not None)
     )
-    n = _chunk_rows(C * K, chunk_size)
+    n = _chunk_rows(C * K, chunk_size, a.device)
     outs = []
     for s in range(0, B, n):
         sl = slice(s, s + n)
@@ -257,7 +267,8 @@ def capsule_truncated_cost(
 
     if fused is None:
         return _capsule_sdf_chunks(points, a, b, radius, view_point, chunk_size, reduce)
-    cs = chunk_size if chunk_size is not None else max(1, (1 << 20) // max(1, a.shape[-2] * points.shape[-2]))
+    per_row = max(1, a.shape[-2] * points.shape[-2])
+    cs = chunk_size if chunk_size is not None else max(1, chunk_elements(a.device, 1 << 20) // per_row)
     try:
         return _capsule_sdf_chunks(points, a, b, radius, view_point, cs, reduce, fused)
     except Exception as e:  # inductor missing a compiler or failing on this platform
@@ -299,7 +310,7 @@ def raycast_capsules(
     baba = (ba * ba).sum(-1)
     r2 = r * r
     inf = torch.tensor(float("inf"), dtype=d.dtype, device=d.device)
-    n = _chunk_rows(a.shape[0] * 8, chunk_size)
+    n = _chunk_rows(a.shape[0] * 8, chunk_size, d.device)
     outs = []
     for s in range(0, d.shape[0], n):
         rd = d[s : s + n]

@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import torch
 
 from torchpf.camera import CameraRig, _camera_to_pixels
-from torchpf.geometry.capsules import _chunk_rows
+from torchpf.geometry.capsules import _chunk_rows, chunk_elements
 
 #: pose-capsule-point triples per chunk of :func:`capsule_coverage` (its passes then stay in cache)
 _COVERAGE_CHUNK = 1 << 17
@@ -239,7 +239,7 @@ def _nearest_capsules(pts, fields, valid, C: int) -> tuple[torch.Tensor, torch.T
     G, RC = valid.shape[:2]
     R = RC // max(1, C)
     with torch.no_grad():
-        n = max(1, _COVERAGE_CHUNK // max(1, G * C * pts.shape[1]))
+        n = max(1, chunk_elements(pts.device, _COVERAGE_CHUNK) // max(1, G * C * pts.shape[1]))
         parts = []
         for r0 in range(0, R, n):
             rows = slice(r0 * C, min(R, r0 + n) * C)
@@ -354,7 +354,7 @@ def capsule_masks(
         indexing="ij",
     )
     grid = torch.stack([u, v], -1).reshape(1, 1, -1, 2)
-    n = _chunk_rows(C * height * width, chunk_size)
+    n = _chunk_rows(C * height * width, chunk_size, pa.device)
     outs = []
     for s in range(0, pa.shape[0], n):
         sl = slice(s, s + n)
@@ -633,7 +633,11 @@ def _coverage(points, caps, softness, reduce, exclude_own, chunk_size) -> torch.
         owner = torch.arange(P, device=pts.device) // exclude_own  # owner capsule of each point
         own = owner[None, :] == torch.arange(C, device=pts.device)[:, None]  # (C, P)
     # chunks of (groups, rows) of about `budget` poses
-    budget = int(chunk_size) if chunk_size is not None else max(1, _COVERAGE_CHUNK // max(1, C * P))
+    budget = (
+        int(chunk_size)
+        if chunk_size is not None
+        else max(1, chunk_elements(pts.device, _COVERAGE_CHUNK) // max(1, C * P))
+    )
     n_r = min(R, budget)
     n_g = max(1, budget // n_r) if n_r == R else 1
     outs = []

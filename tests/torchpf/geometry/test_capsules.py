@@ -211,3 +211,14 @@ def test_truncated_cost_compiled(view):
     ref = capsule_distance(P, a, b, r, view_point=vp).square().clamp_max(0.01).sum(-1)
     got = capsule_truncated_cost(P, a, b, r, tau=0.01, view_point=vp, compile=True, chunk_size=3)
     torch.testing.assert_close(got, ref, rtol=1e-5, atol=1e-5)
+
+
+def test_chunks_are_cache_sized_on_the_cpu_and_memory_sized_elsewhere():
+    """The chunked kernels split the poses for the CPU's cache; on a GPU each chunk costs kernel launches,
+    so chunks there are as large as memory allows (the same results either way: chunking is tested above)."""
+    from torchpf.geometry.capsules import _chunk_rows, chunk_elements
+
+    assert chunk_elements("cpu") == 1 << 18 and chunk_elements("cpu", 1 << 17) == 1 << 17
+    assert chunk_elements("cuda") == chunk_elements(torch.device("cuda", 0), 1 << 17) == 1 << 24
+    assert _chunk_rows(27 * 1000, None, "cpu") == 9 and _chunk_rows(27 * 1000, None, "cuda") == 621
+    assert _chunk_rows(27 * 1000, 5, "cuda") == 5  # an explicit chunk size wins
