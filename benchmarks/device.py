@@ -6,8 +6,9 @@
 Set-up: ``human.urdf`` (96 DOFs, 27 capsules), 3 cameras at 160x120 around a synthetic pose, a depth camera
 giving a 1,000-point cloud, particles spread around the true pose. Each row times the same call on the CPU
 and on ``--device`` (the median of ``--repeat`` synchronised calls after a warm-up); a tracking step is one
-frame of the default tracker's filter (APF, 3 layers, silhouette x dual silhouette, random walk) at an equal
-likelihood budget of N evaluations. The first line names the device (GPU model) for BENCHMARKS.md.
+frame of the default tracker's filter (the hybrid: APF layers, then gradient refinement of 4 poses;
+silhouette x dual silhouette, random walk) at an equal likelihood budget of N evaluations. The first line
+names the device (GPU model) for BENCHMARKS.md.
 """
 
 from __future__ import annotations
@@ -81,7 +82,7 @@ def main(argv=None) -> None:
         for label, lik in cases.items():
             rows[label] = lambda dev, th, lik=lik: lik.to(dev)(th, frames[dev])
         tracker = Tracker(skel, rig, n_particles=n, fps=15.0, progress=False)
-        rows["tracking step (APF, 3 layers)"] = lambda dev, th, tr=tracker: _step(
+        rows[f"tracking step ({tracker.filter_name})"] = lambda dev, th, tr=tracker: _step(
             tr, dev, dtype, th, frames[dev]
         )
         for label, fn in rows.items():

@@ -69,9 +69,21 @@ def _track_row(tracker, seq_dir: Path, frames: int, warmup) -> dict:
     return {"cpu": clocks.cpu / frames, "wall": clocks.wall / frames, "evals": result.likelihood_evaluations}
 
 
-def measure(clip: str, work: Path, frames: int, repeat: int, paths, refine_steps=()) -> dict[str, dict]:
+def measure(
+    clip: str,
+    work: Path,
+    frames: int,
+    repeat: int,
+    paths,
+    refine_steps=(),
+    *,
+    cmu_dir: Path = CMU_DIR,
+    device: str = "cpu",
+    particles: int = 500,
+) -> dict[str, dict]:
     """Per-frame seconds ``{path: {"cpu", "wall", "evals"}}`` of the paths named in ``paths``; the hybrid
-    and the refinement also with each number of gradient steps in ``refine_steps`` (default 20)."""
+    and the refinement also with each number of gradient steps in ``refine_steps`` (default 20). The
+    trackers run on ``device`` with ``particles`` likelihood evaluations per frame."""
     from benchmarks.foreign import build_sequence
     from torchpf.detect import fit_body_to_frame
     from torchpf.likelihoods import LIKELIHOODS
@@ -80,7 +92,8 @@ def measure(clip: str, work: Path, frames: int, repeat: int, paths, refine_steps
     from torchpf.skeleton import Skeleton
     from torchpf.tracker import Tracker
 
-    seq = build_sequence(CMU_DIR / f"{clip}.bvh", work / f"{clip}-clean", defects="clean", frames=frames)
+    bvh = Path(cmu_dir) / f"{clip}.bvh"
+    seq = build_sequence(bvh, work / f"{clip}-clean", defects="clean", frames=frames)
     data = read_sequence(seq.path)
     T = len(data)
     # the body track() would fit to frame 0 (the converted skeleton looks uncalibrated), fitted once here so
@@ -92,7 +105,9 @@ def measure(clip: str, work: Path, frames: int, repeat: int, paths, refine_steps
     rows: dict[str, dict] = {}
 
     def tracker(**options):
-        return Tracker(skel, data.cameras, n_particles=500, fps=30, progress=False, **options)
+        return Tracker(
+            skel, data.cameras, n_particles=particles, fps=30, progress=False, device=device, **options
+        )
 
     if "apf" in paths:
         rows["apf"] = _track_row(tracker(filter="apf"), seq.path, T, warmup)
@@ -183,7 +198,10 @@ def main(argv=None) -> int:
     )
     p.add_argument("--work", default="out/step_speed", help="where the sequence directory is written")
     p.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
-    p.add_argument("--clock", choices=["cpu", "wall"], default="cpu")
+    p.add_argument("--clock", choices=["cpu", "wall"], help="default: cpu on the CPU, wall on a GPU")
+    p.add_argument("--device", default="cpu", help="where the trackers run (cuda: the apf and hybrid rows)")
+    p.add_argument("--particles", type=int, default=500, help="likelihood evaluations per frame")
+    p.add_argument("--cmu-dir", default=str(CMU_DIR), help="folder of the CMU BVH clips")
     p.add_argument("--save", help="write the figures to this JSON file")
     p.add_argument("--baseline", help="JSON file of an earlier --save: adds its ms and the speed-up")
     args = p.parse_args(argv)
@@ -192,15 +210,36 @@ def main(argv=None) -> int:
     unknown = paths - {"apf", "hybrid", "refine", "cues"}
     if unknown:
         p.error(f"unknown path(s) {sorted(unknown)}")
+    if args.device != "cpu":
+        if not paths <= {"apf", "hybrid"}:
+            p.error(f"--device {args.device} times the apf and hybrid rows only (--paths apf,hybrid)")
+        if args.device.startswith("cuda") and not torch.cuda.is_available():
+            p.error(f"--device {args.device}: no CUDA device is available")
+    # a GPU's work is asynchronous and runs beside the CPU: only wall time measures it
+    clock = args.clock or ("cpu" if args.device == "cpu" else "wall")
     baseline = None
     if args.baseline:
         with open(args.baseline, encoding="utf-8") as f:
             baseline = json.load(f)["rows"]
-    print(f"machine: {machine()}; load average {os.getloadavg()[0]:.2f}; clock: {args.clock}")
+    gpu = f"; device: {torch.cuda.get_device_name(args.device)}" if args.device.startswith("cuda") else ""
+    print(f"machine: {machine()}{gpu}; load average {os.getloadavg()[0]:.2f}; clock: {clock}")
     refine_steps = [int(x) for x in args.refine_steps.split(",") if x.strip()]
-    rows = measure(args.clip, Path(args.work), args.frames, args.repeat, paths, refine_steps)
-    print(f"clip {args.clip} (clean), 3 cameras, 160x120 masks; load average now {os.getloadavg()[0]:.2f}\n")
-    print(table(rows, args.clock, baseline))
+    rows = measure(
+        args.clip,
+        Path(args.work),
+        args.frames,
+        args.repeat,
+        paths,
+        refine_steps,
+        cmu_dir=Path(args.cmu_dir),
+        device=args.device,
+        particles=args.particles,
+    )
+    print(
+        f"clip {args.clip} (clean), 3 cameras, 160x120 masks, {args.particles} evaluations/frame on "
+        f"{args.device}; load average now {os.getloadavg()[0]:.2f}\n"
+    )
+    print(table(rows, clock, baseline))
     if args.save:
         Path(args.save).parent.mkdir(parents=True, exist_ok=True)
         with open(args.save, "w", encoding="utf-8") as f:
