@@ -126,7 +126,9 @@ def project_points(
     R: torch.Tensor,
     t: torch.Tensor,
     dist: torch.Tensor | None = None,
-) -> torch.Tensor:
+    *,
+    return_depth: bool = False,
+) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
     """Functional OpenCV projection (the formula in the module docstring), batched and differentiable.
 
     Args:
@@ -136,7 +138,8 @@ def project_points(
 
     Returns:
         (..., 2) pixel coordinates (u right, v down). Points at or behind the camera plane give
-        meaningless (but finite where z != 0) values; check :meth:`Camera.depth`.
+        meaningless (but finite where z != 0) values; check :meth:`Camera.depth`, or pass
+        ``return_depth=True`` for ``(pixels, depth (...))`` from the same transform.
     """
     if dist is None:
         # Without distortion the projection is linear up to the division: [u z, v z, z] = K' (R x + t), with
@@ -145,8 +148,11 @@ def project_points(
         Kp = K * _PINHOLE_MASK.to(K) + _PINHOLE_ONE.to(K)
         h = _affine(points, Kp @ R, Kp @ t)
         z = h[..., 2:]
-        return h[..., :2] / torch.where(z.abs() < 1e-12, torch.full_like(z, 1e-12), z)
-    return _camera_to_pixels(points @ R.transpose(-1, -2) + t, K, dist)
+        uv = h[..., :2] / torch.where(z.abs() < 1e-12, torch.full_like(z, 1e-12), z)
+    else:
+        h = points @ R.transpose(-1, -2) + t
+        uv = _camera_to_pixels(h, K, dist)
+    return (uv, h[..., 2]) if return_depth else uv
 
 
 def _affine(points: torch.Tensor, A: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -256,9 +262,10 @@ class Camera:
         dist = None if self.dist is None else self.dist.to(**kw)
         return self.K.to(**kw), self.R.to(**kw), self.t.to(**kw), dist
 
-    def project(self, points: torch.Tensor) -> torch.Tensor:
-        """(..., 3) world points (m) -> (..., 2) pixels, differentiable; agrees with ``cv2.projectPoints``."""
-        return project_points(points, *self._params(points))
+    def project(self, points: torch.Tensor, *, return_depth: bool = False):
+        """(..., 3) world points (m) -> (..., 2) pixels, differentiable; agrees with ``cv2.projectPoints``.
+        With ``return_depth``, ``(pixels, depth (...) m)`` from one transform (:meth:`depth` does another)."""
+        return project_points(points, *self._params(points), return_depth=return_depth)
 
     def to_camera(self, points: torch.Tensor) -> torch.Tensor:
         """(..., 3) world points -> (..., 3) camera-frame points ``R x + t`` (m)."""

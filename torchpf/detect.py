@@ -183,6 +183,60 @@ def _triangulate_centroids(rig, masks: Tensor, valid: Tensor) -> Tensor | None:
     return torch.linalg.solve(A, b)
 
 
+def _carve_cells(rig, masks: Tensor, seen: list[int], pts: Tensor, radius: float = 0.0) -> Tensor:
+    """Indices (K',) of the points (K, 3) whose projection lies on every seen camera's mask, carved one
+    camera at a time (each projects only the points the previous ones kept). With ``radius`` > 0 (m) a
+    point stands for a cell of that half-diagonal: it is kept where any point of the cell could project on
+    the mask (the mask dilated by the cell's largest projected radius, also beyond the image's edges)."""
+    import cv2
+
+    H, W = masks.shape[-2:]
+    idx = torch.arange(len(pts))
+    for v in seen:
+        cam = rig[v]
+        uv, depth = cam.project(pts[idx], return_depth=True)  # (K', 2), (K',)
+        uv = uv.round().long()
+        if radius > 0.0:
+            near = float(depth.min()) - radius if len(depth) else 1.0
+            if near <= 1e-3:  # a cell reaches the camera plane: no bound on its image, nothing carved
+                continue
+            # a cell's image lies within f r / z' of its centre's (taken 2x where the lens distorts), and
+            # rounding both moves up to 1.5 px
+            grow = 2.0 if cam.dist is not None and bool(cam.dist.abs().gt(0).any()) else 1.0
+            pad = math.ceil(grow * float(cam.K[:2, :2].abs().max()) * radius / near + 1.5)
+            mask = cv2.copyMakeBorder(
+                masks[v].to(torch.uint8).numpy(), pad, pad, pad, pad, cv2.BORDER_CONSTANT
+            )
+            grown = torch.from_numpy(cv2.dilate(mask, np.ones((2 * pad + 1, 2 * pad + 1), np.uint8))).bool()
+            uv, bounds = uv + pad, (W + 2 * pad, H + 2 * pad)
+        else:
+            grown, bounds = masks[v], (W, H)
+        inside = (uv[:, 0] >= 0) & (uv[:, 0] < bounds[0]) & (uv[:, 1] >= 0) & (uv[:, 1] < bounds[1])
+        inside &= depth > 1e-3 - radius
+        on_mask = grown[uv[:, 1].clamp(0, bounds[1] - 1), uv[:, 0].clamp(0, bounds[0] - 1)] & inside
+        idx = idx[on_mask]
+    return idx
+
+
+def _carve(rig, masks: Tensor, seen: list[int], axes: list[Tensor], voxel: float) -> Tensor:
+    """The voxel centres (K, 3) of the grid ``axes`` that every seen camera's mask keeps: first the cells of
+    2 x 2 x 2 voxels, by the conservative test of :func:`_carve_cells`, then the voxels of the cells left.
+    The same set as carving every voxel, for about 1/8 of the projections where the person fills little of
+    the box (the tracker's lost-track check carves a hull every few frames)."""
+    sizes = torch.tensor([len(a) for a in axes])
+    first = [torch.arange(0, len(a), 2) for a in axes]  # each cell's first voxel, per axis
+    # an odd axis ends in a one-voxel cell
+    mid = [(a[f] + a[(f + 1).clamp(max=len(a) - 1)]) / 2 for a, f in zip(axes, first, strict=True)]
+    centres = torch.stack(torch.meshgrid(*mid, indexing="ij"), -1).reshape(-1, 3)  # (C, 3)
+    first = torch.stack(torch.meshgrid(*first, indexing="ij"), -1).reshape(-1, 3)  # (C, 3)
+    cells = first[_carve_cells(rig, masks, seen, centres, math.sqrt(3) * voxel / 2)]
+    offsets = torch.stack(torch.meshgrid(*[torch.arange(2)] * 3, indexing="ij"), -1).reshape(1, 8, 3)
+    ijk = (cells[:, None] + offsets).reshape(-1, 3)
+    ijk = ijk[(ijk < sizes).all(-1)]
+    pts = torch.stack([a[i] for a, i in zip(axes, ijk.T, strict=True)], -1)  # (K, 3)
+    return pts[_carve_cells(rig, masks, seen, pts)]
+
+
 def visual_hull(
     cameras,
     obs,
@@ -216,16 +270,10 @@ def visual_hull(
         torch.arange(-e, e + 1e-9, voxel, dtype=torch.float64) + float(c)
         for e, c in zip(half_extent, centre, strict=True)
     ]
-    pts = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)  # (K, 3)
-    seen = valid & (area > 0)
-    # carved one camera at a time, each projecting only the voxels the previous ones kept (a camera without
-    # a silhouette carves nothing)
-    for v in torch.nonzero(seen).reshape(-1).tolist():
-        cam = rig[v]
-        uv = cam.project(pts).round().long()  # (K', 2)
-        inside = (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H) & cam.in_front(pts)
-        on_mask = masks[v, uv[:, 1].clamp(0, H - 1), uv[:, 0].clamp(0, W - 1)] & inside
-        pts = pts[on_mask]
+    seen = (
+        torch.nonzero(valid & (area > 0)).reshape(-1).tolist()
+    )  # a camera without a silhouette carves nothing
+    pts = _carve(rig, masks, seen, axes, voxel)
     if not len(pts):
         return None
     z = pts[:, 2]
@@ -869,6 +917,8 @@ class Recovery:
         return state.info["estimate"] if "estimate" in state.info else state.mean()
 
     def _estimate_ll(self, state, obs) -> float:
+        if "estimate_log_likelihood" in state.info:  # the hybrid scored its estimate already
+            return float(state.info["estimate_log_likelihood"])
         with torch.no_grad():
             return float(self.likelihood(self._estimate(state)[None], obs)[0])
 

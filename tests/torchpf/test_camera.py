@@ -51,6 +51,10 @@ def test_project_matches_opencv(seed, dist):
     uv32 = cam.project(torch.from_numpy(X).float())
     assert uv32.dtype == torch.float32
     np.testing.assert_allclose(uv32.numpy(), ref[:, 0], atol=2e-3)
+    # the depth from the same transform is R x + t's third coordinate
+    uv, depth = cam.project(torch.from_numpy(X), return_depth=True)
+    assert torch.equal(uv, uv64)
+    np.testing.assert_allclose(depth.numpy(), (X @ cam.R.numpy().T + cam.t.numpy())[:, 2], atol=1e-12)
 
 
 def test_project_batched_shapes_and_gradient():

@@ -42,6 +42,39 @@ def test_visual_hull_locates_the_person(case):
         assert -0.05 < det.top - float(joints[:, 2].max()) < 0.15
 
 
+def test_coarse_to_fine_carving_keeps_exactly_the_voxels_of_a_full_carve(case):
+    """The hull is carved in 2x2x2 cells first; the voxels it keeps are exactly those that carving every
+    voxel keeps (the cell test is conservative), also through a distorting lens and at a small voxel."""
+    from torchpf.detect import _carve, _carve_cells, silhouette_masks
+
+    rigs = {"pinhole": case.cameras, "distorted": _with_distortion(case.cameras)}
+    for name, rig in rigs.items():
+        for t, voxel in ((0, 0.04), (5, 0.04), (7, 0.03)):
+            masks, valid = silhouette_masks(case.frames[t])
+            H, W = masks.shape[-2:]
+            small = rig.resized(W, H)
+            seen = torch.nonzero(valid).reshape(-1).tolist()
+            axes = [torch.arange(-1.0, 1.0 + 1e-9, voxel, dtype=torch.float64) + c for c in (0.0, 0.0, 1.0)]
+            full = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+            want = full[_carve_cells(small, masks, seen, full)]
+            got = _carve(small, masks, seen, axes, voxel)
+            assert len(want) > 100, (name, t)
+            assert _rows(got) == _rows(want), (name, t, len(got), len(want))
+
+
+def _rows(pts):
+    return sorted(map(tuple, (pts * 1e6).round().long().tolist()))
+
+
+def _with_distortion(rig):
+    from torchpf.camera import Camera, CameraRig
+
+    dist = torch.tensor([-0.2, 0.05, 0.001, -0.001, 0.0], dtype=torch.float64)
+    return CameraRig(
+        [Camera(c.K, c.R, c.t, dist, width=c.width, height=c.height, name=c.name) for c in rig.cameras]
+    )
+
+
 def test_no_person_no_detection(case):
     empty = torch.zeros_like(case.frames[0].silhouettes.masks)
     assert visual_hull(case.cameras, empty) is None
@@ -123,6 +156,23 @@ def test_init_from_truth_csv_or_error(case, tmp_path):
     write_mocap_csv(csv, case.skeleton.dof_names, case.angles[:1].numpy())
     result = tracker.track(case.frames[:2], init=csv, calibrate=False)  # the body as given: the CSV's pose
     assert result.init == "pose" and torch.allclose(result.angles[0], case.angles[0], atol=0.3)
+
+
+def test_recovery_takes_the_filters_score_of_its_estimate():
+    """The hybrid scores its estimate for its own acceptance check; the lost-track check reads that score
+    instead of running the likelihood again (one evaluation per frame, ~2 % of a hybrid frame)."""
+    from types import SimpleNamespace
+
+    from torchpf.detect import Recovery
+
+    def never(x, obs):
+        raise AssertionError("the likelihood was run again")
+
+    recovery = Recovery(None, never)
+    hybrid = SimpleNamespace(info={"estimate": torch.zeros(3), "estimate_log_likelihood": torch.tensor(-3.5)})
+    assert recovery._estimate_ll(hybrid, None) == -3.5
+    other = SimpleNamespace(info={}, mean=lambda: torch.zeros(3))  # a filter without it: scored here
+    assert Recovery(None, lambda x, obs: -x.sum(-1) - 7.0)._estimate_ll(other, None) == -7.0
 
 
 def test_recovery_after_a_full_occlusion():

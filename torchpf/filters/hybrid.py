@@ -9,7 +9,7 @@ the two-sided distance-transform silhouette cue). How the refined poses re-enter
 * ``"recentre"`` (default): the weighted mean and the ``K - 1`` particles of highest weight are refined;
   the frame's estimate is the candidate the refinement left best on its objective (``info["estimate"]``)
   if the filter's likelihood scores it at least as high as the mean (else the mean;
-  ``info["refine_accepted"]``), and every particle is shifted by that estimate minus the weighted mean
+  ``info["refine_accepted"]``, and that score in ``info["estimate_log_likelihood"]``), and every particle is shifted by that estimate minus the weighted mean
   (clamped to the limits), weights unchanged: the set keeps its spread and follows the refinement into the
   next frame. A deterministic move of the whole set, not an importance-weighted one (the weights do not see
   it): the "filtering around the optimum" of Gall et al.'s layered framework, where the stochastic search
@@ -200,6 +200,8 @@ class HybridParticleFilter(AnnealedParticleFilter):
             accept = both[..., 1] >= both[..., 0]
             info["refine_accepted"] = accept
             info["estimate"] = torch.where(accept.unsqueeze(-1), chosen.squeeze(-2), xk[..., 0, :])
+            # kept for the lost-track check (torchpf.detect.Recovery), which would otherwise score it again
+            info["estimate_log_likelihood"] = torch.where(accept, both[..., 1], both[..., 0])
             if self.refine_mode == "recentre":  # the whole set follows its refined estimate
                 shift = info["estimate"] - xk[..., 0, :]
                 shift = torch.where(torch.isfinite(shift), shift, 0.0).unsqueeze(-2)

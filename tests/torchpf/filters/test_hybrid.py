@@ -131,6 +131,8 @@ def test_estimate_mode_reports_the_best_refined_candidate_and_keeps_the_particle
         want = torch.where(accept.unsqueeze(-1), chosen, cands[:, 0])
         torch.testing.assert_close(sh.info["estimate"], want)
         assert torch.equal(sh.info["refine_accepted"], accept)
+        # the estimate's score, for the lost-track check (it would otherwise score the estimate again)
+        torch.testing.assert_close(sh.info["estimate_log_likelihood"], lik(want.unsqueeze(-2), z)[:, 0])
         seen.update(accept.tolist())
     assert seen == {True, False}  # both branches ran
 
