@@ -270,9 +270,8 @@ def visual_hull(
         torch.arange(-e, e + 1e-9, voxel, dtype=torch.float64) + float(c)
         for e, c in zip(half_extent, centre, strict=True)
     ]
-    seen = (
-        torch.nonzero(valid & (area > 0)).reshape(-1).tolist()
-    )  # a camera without a silhouette carves nothing
+    # a camera without a silhouette carves nothing
+    seen = torch.nonzero(valid & (area > 0)).reshape(-1).tolist()
     pts = _carve(rig, masks, seen, axes, voxel)
     if not len(pts):
         return None

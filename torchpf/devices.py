@@ -9,10 +9,11 @@ from __future__ import annotations
 
 import copy
 import itertools
+from typing import TypeVar
 
 from torch import nn
 
-M = nn.Module
+M = TypeVar("M", bound=nn.Module)
 
 
 def on_cpu(module: M) -> M:

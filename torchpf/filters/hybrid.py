@@ -9,9 +9,9 @@ the two-sided distance-transform silhouette cue). How the refined poses re-enter
 * ``"recentre"`` (default): the weighted mean and the ``K - 1`` particles of highest weight are refined;
   the frame's estimate is the candidate the refinement left best on its objective (``info["estimate"]``)
   if the filter's likelihood scores it at least as high as the mean (else the mean;
-  ``info["refine_accepted"]``, and that score in ``info["estimate_log_likelihood"]``), and every particle is shifted by that estimate minus the weighted mean
-  (clamped to the limits), weights unchanged: the set keeps its spread and follows the refinement into the
-  next frame. A deterministic move of the whole set, not an importance-weighted one (the weights do not see
+  ``info["refine_accepted"]``; the estimate's score is ``info["estimate_log_likelihood"]``), and every
+  particle is shifted by that estimate minus the weighted mean (clamped to the limits), weights unchanged:
+  the set keeps its spread and follows the refinement into the next frame. A deterministic move of the whole set, not an importance-weighted one (the weights do not see
   it): the "filtering around the optimum" of Gall et al.'s layered framework, where the stochastic search
   explores and the local optimisation corrects its drift.
 * ``"estimate"``: the same estimate, but the particle set is left as the APF made it: a post-processing the
