@@ -6,14 +6,14 @@ Each frame runs the ``L`` APF layers (:class:`~torchpf.filters.AnnealedParticleF
 then refines ``K`` poses by projected Adam on a differentiable cue (:class:`~torchpf.refine.Refiner`; default
 the two-sided distance-transform silhouette cue). How the refined poses re-enter (``refine_mode``):
 
-* ``"recentre"`` (default): the weighted mean and the ``K - 1`` particles of highest weight are refined;
-  the frame's estimate is the candidate the refinement left best on its objective (``info["estimate"]``)
-  if the filter's likelihood scores it at least as high as the mean (else the mean;
-  ``info["refine_accepted"]``; the estimate's score is ``info["estimate_log_likelihood"]``), and every
-  particle is shifted by that estimate minus the weighted mean (clamped to the limits), weights unchanged:
-  the set keeps its spread and follows the refinement into the next frame. A deterministic move of the whole set, not an importance-weighted one (the weights do not see
-  it): the "filtering around the optimum" of Gall et al.'s layered framework, where the stochastic search
-  explores and the local optimisation corrects its drift.
+* ``"recentre"`` (default): the weighted mean and the ``K - 1`` particles of highest weight are refined; the
+  frame's estimate is the candidate the refinement left best on its objective (``info["estimate"]``) if the
+  filter's likelihood scores it at least as high as the mean (else the mean; ``info["refine_accepted"]``; the
+  estimate's score is ``info["estimate_log_likelihood"]``), and every particle is shifted by that estimate
+  minus the weighted mean (clamped to the limits), weights unchanged: the set keeps its spread and follows the
+  refinement into the next frame. A deterministic move of the whole set, not an importance-weighted one (the
+  weights do not see it): the "filtering around the optimum" of Gall et al.'s layered framework, where the
+  stochastic search explores and the local optimisation corrects its drift.
 * ``"estimate"``: the same estimate, but the particle set is left as the APF made it: a post-processing the
   filter never sees, so the next frame starts from the unrefined particles and the drift stays.
 * ``"particles"``: the ``K`` particles of highest weight are refined, each ``x' = T(x)`` replaces its
