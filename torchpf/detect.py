@@ -128,6 +128,12 @@ def fit_body_to_frame(
     or (V, H, W) masks) from an approximate ``pose (D,)``: capsule radii, global scale and the pose refined
     together. Returns ``(fitted skeleton, CalibrationReport)``; ``report.poses[0]`` is the refined pose.
 
+    ``obs`` may also be a list of such frames (consecutive ones, e.g. a sequence's first few): the body is
+    fitted to all of them, every frame's pose starting at ``pose`` and refined on its own
+    (``report.poses[k]``). ``init="auto"`` fits one frame: with its body fitted so to the first 5, the 11
+    noisy foreign clips tracked at 127 mm against 155, but notebook 05's video-segmented walk at 7.7 cm
+    against 5.3 (6 seeds; BENCHMARKS.md).
+
     ``scale_sigma`` holds the global scale near 1 (:func:`~torchpf.calibrate.fit_body`): one frame's masks
     are weak evidence of it. On frames 0 and 1 of the foreign renders of the 11 CMU clips (true scale 1), a
     free scale came out at 0.98-1.02 on clean masks but 0.87-1.03 on noisy ones (a body 13 % too small is
@@ -135,23 +141,25 @@ def fit_body_to_frame(
     fits it freely; ``options`` go to ``fit_body``."""
     from torchpf.calibrate import fit_body
 
-    got = silhouette_masks(obs)
-    if got is None:
-        raise ValueError("fitting the body needs silhouettes")
-    masks, valid = got
-    frame = [
-        [
-            m.numpy().astype(np.uint8) * 255 if ok else None
-            for m, ok in zip(masks, valid.tolist(), strict=True)
-        ]
-    ]
+    frames = []
+    for k, one in enumerate(obs if isinstance(obs, (list, tuple)) else [obs]):
+        got = silhouette_masks(one)
+        if got is None:
+            raise ValueError(f"fitting the body needs silhouettes (frame {k} has none)")
+        masks, valid = got
+        frames.append(
+            [
+                m.numpy().astype(np.uint8) * 255 if ok else None
+                for m, ok in zip(masks, valid.tolist(), strict=True)
+            ]
+        )
     pose = torch.as_tensor(pose, dtype=torch.float64).cpu()
     return fit_body(
         skeleton,
         cameras,
-        frame,
-        pose[None],
-        frames_used=1,
+        frames,
+        pose[None].expand(len(frames), -1),
+        frames_used=len(frames),
         iterations=iterations,
         scale_sigma=scale_sigma,
         **options,

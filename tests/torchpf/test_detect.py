@@ -146,6 +146,23 @@ def test_auto_init_on_the_particles_device(case, device):
     assert float(err[0]) < 0.12  # the bound of test_auto_init_finds_the_pose
 
 
+def test_body_fitted_to_several_frames_refines_each_frames_pose(case):
+    """fit_body_to_frame on the first 5 frames from frame 0's true pose: one body for all (the walker's
+    scale, 1, within 3 %) and each frame's own pose (the walk moves the joints 0.05-0.19 m from frame 0's
+    pose; every refined pose is within 5 cm of its own frame's truth; measured 1.9-3.1 cm)."""
+    from benchmarks.auto_init import joint_error
+    from torchpf.detect import fit_body_to_frame
+
+    fitted, report = fit_body_to_frame(
+        case.skeleton, case.cameras, case.frames[:5], case.angles[0], scale_sigma=None
+    )
+    assert report.poses.shape == (5, case.angles.shape[1])
+    assert report.scale == pytest.approx(1.0, abs=0.03)
+    own = joint_error(case, fitted, torch.cat([report.poses, case.angles[5:]]).double())[:5]
+    held = joint_error(case, case.skeleton, case.angles[:1].expand_as(case.angles))[:5]
+    assert float(own.max()) < 0.05 and float(held[4]) > 0.15, (own, held)
+
+
 def test_init_from_truth_csv_or_error(case, tmp_path):
     from torchpf.io import write_mocap_csv
 
