@@ -365,6 +365,9 @@ class PersonDetector:
         cameras: :class:`~torchpf.camera.CameraRig` of the masks.
         headings: number of headings about the vertical in the global search (evenly spaced).
         voxel: voxel edge (m) of :func:`visual_hull`.
+        posture_sigma: std (rad) of the posture prior of :meth:`search`.
+        scale_sigma: the weak prior on the global scale in :meth:`fit`'s body fit
+            (:func:`~torchpf.calibrate.fit_body`; ``None``: free).
 
     Attributes: ``postures`` (P, D) canonical postures (root at rest), ``heading_dofs`` (headings, R) the
     root's revolute DOF values per heading, ``root_height`` (m) of the root above the rest pose's lowest
@@ -372,13 +375,21 @@ class PersonDetector:
     """
 
     def __init__(
-        self, skeleton, cameras, *, headings: int = 24, voxel: float = 0.04, posture_sigma: float = 0.5
+        self,
+        skeleton,
+        cameras,
+        *,
+        headings: int = 24,
+        voxel: float = 0.04,
+        posture_sigma: float = 0.5,
+        scale_sigma: float | None = 0.1,
     ):
         # the detector's search is CPU-side geometry in float64 (OpenCV, the visual hull, IK); a tracker on a
         # GPU keeps its own skeleton and rig there and gets its particles back on its device (`search`)
         skeleton, cameras = on_cpu(skeleton), on_cpu(cameras)
         self.skeleton = skeleton
         self.posture_sigma = float(posture_sigma)
+        self.scale_sigma = scale_sigma
         self.cameras = cameras
         self.voxel = float(voxel)
         parents = list(skeleton.parents)
@@ -696,10 +707,11 @@ class PersonDetector:
         cand = cand.reshape(-1, cand.shape[-1])
 
         def run(pose, steps):
-            # the scale stays free here: held (as the tracker's fit at a given pose holds it), the found
-            # posture's fit tracked the video-segmented walk of notebook 05 at 7.1 cm against 5.3 (6 seeds)
+            # a looser scale prior than the fit at a given pose (0.03): with 0.03 notebook 05's
+            # video-segmented walk tracked at 7.1 cm (6 seeds), free at 5.3 but the 11 noisy foreign clips
+            # at 155 mm (2 runs); with 0.1, 5.7 cm (5.0-5.3 but one seed 8.3) and 131 mm (BENCHMARKS.md)
             fitted, report = fit_body_to_frame(
-                self.skeleton, self.cameras, obs, pose, iterations=steps, scale_sigma=None
+                self.skeleton, self.cameras, obs, pose, iterations=steps, scale_sigma=self.scale_sigma
             )
             return report.loss[-1], fitted, report
 
