@@ -698,9 +698,10 @@ class Tracker(nn.Module):
         if calibrate is None:
             if not looks_uncalibrated(self.skeleton) or not _evidence(frame, {"silhouettes"}):
                 return False  # a calibrated body, or nothing in frame 0 to fit it to
+            where = {"truth": "true", "pose": "given", "auto": "found"}.get(init, init)
             warnings.warn(
                 "the skeleton's body looks uncalibrated (its torso capsules are thinner than 4 % of its "
-                f"stature); tracking with the body fitted to frame 0's masks at the {init} pose; calibrate "
+                f"stature); tracking with the body fitted to frame 0's masks at the {where} pose; calibrate "
                 "it once with 'python -m torchpf calibrate' (or pass calibrate=False) to skip this guess",
                 stacklevel=3,
             )
