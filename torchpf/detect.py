@@ -208,9 +208,13 @@ def _carve_cells(rig, masks: Tensor, seen: list[int], pts: Tensor, radius: float
             near = float(depth.min()) - radius if len(depth) else 1.0
             if near <= 1e-3:  # a cell reaches the camera plane: no bound on its image, nothing carved
                 continue
-            # a cell's image lies within f r / z' of its centre's (taken 2x where the lens distorts), and
+            # a cell's image lies within f r / z' of its centre's, times the lens's largest magnification
+            # (at a normalised radius <= 1: 1 + 3|k1| + 5|k2| + 7|k3| + 6(|p1| + |p2|), and at least 2);
             # rounding both moves up to 1.5 px
-            grow = 2.0 if cam.dist is not None and bool(cam.dist.abs().gt(0).any()) else 1.0
+            grow = 1.0
+            if cam.dist is not None and bool(cam.dist.abs().gt(0).any()):
+                k1, k2, p1, p2, k3 = cam.dist.abs().tolist()
+                grow = max(2.0, 1 + 3 * k1 + 5 * k2 + 7 * k3 + 6 * (p1 + p2))
             pad = math.ceil(grow * float(cam.K[:2, :2].abs().max()) * radius / near + 1.5)
             mask = cv2.copyMakeBorder(
                 masks[v].to(torch.uint8).numpy(), pad, pad, pad, pad, cv2.BORDER_CONSTANT

@@ -44,10 +44,15 @@ def test_visual_hull_locates_the_person(case):
 
 def test_coarse_to_fine_carving_keeps_exactly_the_voxels_of_a_full_carve(case):
     """The hull is carved in 2x2x2 cells first; the voxels it keeps are exactly those that carving every
-    voxel keeps (the cell test is conservative), also through a distorting lens and at a small voxel."""
+    voxel keeps (the cell test is conservative), also through mildly and strongly distorting lenses and at
+    a small voxel."""
     from torchpf.detect import _carve, _carve_cells, silhouette_masks
 
-    rigs = {"pinhole": case.cameras, "distorted": _with_distortion(case.cameras)}
+    rigs = {
+        "pinhole": case.cameras,
+        "barrel": _with_distortion(case.cameras, [-0.2, 0.05, 0.001, -0.001, 0.0]),
+        "strong": _with_distortion(case.cameras, [0.6, -0.3, 0.002, 0.002, 0.1]),
+    }
     for name, rig in rigs.items():
         for t, voxel in ((0, 0.04), (5, 0.04), (7, 0.03)):
             masks, valid = silhouette_masks(case.frames[t])
@@ -66,10 +71,10 @@ def _rows(pts):
     return sorted(map(tuple, (pts * 1e6).round().long().tolist()))
 
 
-def _with_distortion(rig):
+def _with_distortion(rig, coefficients):
     from torchpf.camera import Camera, CameraRig
 
-    dist = torch.tensor([-0.2, 0.05, 0.001, -0.001, 0.0], dtype=torch.float64)
+    dist = torch.tensor(coefficients, dtype=torch.float64)
     return CameraRig(
         [Camera(c.K, c.R, c.t, dist, width=c.width, height=c.height, name=c.name) for c in rig.cameras]
     )
