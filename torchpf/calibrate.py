@@ -495,7 +495,7 @@ def fit_body(
     pixels: dict = {}
     grid_v, grid_u = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
     grid = torch.stack([grid_u, grid_v], -1).reshape(-1, 2).to(dtype)
-    from torchpf.likelihoods.images import _distance_lookup
+    from torchpf.geometry.chamfer import distance_lookup
 
     def capsules(joints, radii):
         return project_capsules(rig, joints[:, bones[:, 0]], joints[:, bones[:, 1]], radii)
@@ -528,7 +528,7 @@ def fit_body(
         if dist_w > 0:
             pts, w_area = sample_in_capsules(caps, n_body=8, n_cap=1)  # (F, V, Q, 2), (F, V, Q)
             d = torch.stack(
-                [_distance_lookup(outside[k], p) for k, p in enumerate(pts.reshape(F * V, -1, 2))]
+                [distance_lookup(outside[k], p) for k, p in enumerate(pts.reshape(F * V, -1, 2))]
             ).reshape(w_area.shape)
             far = (d * w_area).sum(-1) / area * has_mask
             loss = loss + dist_w * far.sum() / max(1.0, float(has_mask.sum()))

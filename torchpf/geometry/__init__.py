@@ -1,7 +1,7 @@
 """Capsule geometry of the body model, in 3-D (:mod:`torchpf.geometry.capsules`: distances, ray casting;
 Hauberg §5) and projected into an image (:mod:`torchpf.geometry.projected`: tapered 2-D capsules, masks,
 sample points, coverage; Fontmarty et al. §3.2.1) and its truncated chamfer distance to a silhouette with
-a hand-written gradient (:mod:`torchpf.geometry.chamfer`).
+a hand-written gradient (:mod:`torchpf.geometry.chamfer`, with the image look-ups the image cues share).
 
 Shapes: ``...`` batch (poses), ``C`` capsules, ``K`` or ``P`` points. Units: metres in 3-D, pixels in 2-D.
 
@@ -13,7 +13,7 @@ Example::
 """
 
 from torchpf.geometry.capsules import capsule_distance, capsule_truncated_cost, raycast_capsules
-from torchpf.geometry.chamfer import capsule_chamfer
+from torchpf.geometry.chamfer import capsule_chamfer, distance_lookup, sample_image
 from torchpf.geometry.projected import (
     Capsules2D,
     capsule_coverage,
@@ -32,10 +32,12 @@ __all__ = [
     "capsule_distance",
     "capsule_masks",
     "capsule_truncated_cost",
+    "distance_lookup",
     "distance_to_capsules",
     "outline_points",
     "project_capsules",
     "raycast_capsules",
+    "sample_image",
     "sample_in_capsules",
     "sample_pattern",
 ]

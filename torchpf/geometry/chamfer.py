@@ -40,7 +40,7 @@ from torchpf.geometry.projected import (
     _nearest_capsules,
 )
 
-__all__ = ["capsule_chamfer"]
+__all__ = ["capsule_chamfer", "distance_lookup", "sample_image"]
 
 
 def capsule_chamfer(
@@ -83,6 +83,33 @@ def capsule_chamfer(
     return model.reshape(*group, N), cover.reshape(*group, N)
 
 
+def sample_image(image: Tensor, uv: Tensor, mode: str = "bilinear", padding: str = "zeros") -> Tensor:
+    """``grid_sample`` of images (*G, H, W) at pixel coords uv (B, ..., 2), pixel centres at integers (u
+    right, v down): one image for all points, or one per group of rows (the B rows are G groups of equal
+    size in the images' order: sequences of a batch as in Body.rows, or the (S, V) images of camera-major
+    (S, V, N, P, 2) points, one call for every camera). ``mode`` "bilinear" or "nearest"; ``padding``
+    "zeros" or "border" outside the image. Returns (B, ...)."""
+    H, W = image.shape[-2:]
+    images = image.reshape(-1, 1, H, W).to(uv)
+    # pixel centres at integers, align_corners=False: (2 u + 1) / W - 1, one multiply-add for u and v
+    scale, shift = uv.new_tensor([2.0 / W, 2.0 / H]), uv.new_tensor([1.0 / W - 1.0, 1.0 / H - 1.0])
+    grid = torch.addcmul(shift, uv, scale).reshape(len(images), 1, -1, 2)
+    out = F.grid_sample(images, grid, mode=mode, padding_mode=padding, align_corners=False)
+    return out.reshape(uv.shape[:-1])
+
+
+def distance_lookup(dist: Tensor, uv: Tensor) -> Tensor:
+    """Distance-image look-up that keeps growing outside the image: value at the nearest border pixel plus
+    the distance to it, so a marker that leaves the image is not mistaken for a close one. ``dist`` (H, W)
+    or (G, H, W), grouped as in :func:`sample_image`; differentiable in ``uv`` (finite everywhere, also at
+    the image's edge). :func:`capsule_chamfer` uses it for its value, and a closed form for its gradient."""
+    H, W = dist.shape[-2:]
+    inside = torch.clamp(uv, uv.new_zeros(2), uv.new_tensor([W - 1.0, H - 1.0]))
+    off = uv - inside
+    extra = off.square().sum(-1).clamp_min(1e-12).sqrt() * (off.abs().sum(-1) > 0)
+    return sample_image(dist, inside, "bilinear", "border") + extra
+
+
 class _Chamfer(torch.autograd.Function):
     """:func:`_chamfer` as one autograd node: the forward keeps each row's gradient, the backward scales
     it."""
@@ -122,7 +149,7 @@ def _model_term(pa, pb, ra, rb, valid, image, tau: float, n_body: int, n_cap: in
     ex, ey, L, alpha, beta, w = k["ex"], k["ey"], k["L"], k["alpha"], k["beta"], k["w"]
     exu, eyu = ex.unsqueeze(-1), ey.unsqueeze(-1)
     M = px.shape[-1]
-    value, gx, gy = _distance_lookup(image, px.view(G, -1), py.view(G, -1), grad)
+    value, gx, gy = _lookup_with_gradient(image, px.view(G, -1), py.view(G, -1), grad)
     value = value.view(G, N, C, M)
     d = value.clamp_max(tau)
     f = d * d
@@ -179,20 +206,18 @@ def _cover_term(pa, pb, ra, rb, valid, fg, tau: float, grad: bool):
     return cover, j.view(G, N, C, 6)
 
 
-def _distance_lookup(image, px, py, grad: bool):
+def _lookup_with_gradient(image, px, py, grad: bool):
     """Bilinear look-up of distance images (G, H, W) at pixel coords ``px``, ``py`` (G, P) (pixel centres
     at integers), continued outside the image by the distance to it (the value at the nearest border pixel
     plus that distance: ``grid_sample(..., padding_mode="border")`` plus the offset); returns the values
     (G, P) and, with ``grad``, their gradient in ``px`` and ``py`` (G, P each; the value and the slope from
     the four corners, gathered once), else Nones."""
+    if not grad:  # the value alone
+        return distance_lookup(image, torch.stack([px, py], -1)), None, None
     G, H, W = image.shape
     ix, iy = px.clamp(0.0, W - 1.0), py.clamp(0.0, H - 1.0)
     ox, oy = px - ix, py - iy
     oo = torch.addcmul(ox * ox, oy, oy)
-    if not grad:  # the value alone: one grid_sample (pixel centres at integers, align_corners=False)
-        grid = torch.stack([ix.mul(2.0 / W).add_(1.0 / W - 1.0), iy.mul(2.0 / H).add_(1.0 / H - 1.0)], -1)
-        v = F.grid_sample(image.unsqueeze(1), grid.unsqueeze(1), padding_mode="border", align_corners=False)
-        return v.view(G, -1) + oo.sqrt(), None, None
     if H < 2 or W < 2:  # a one-pixel-wide image: its border replicated, so both neighbours exist
         image = F.pad(image.unsqueeze(1), (0, int(W < 2), 0, int(H < 2)), mode="replicate").squeeze(1)
         H, W = image.shape[-2:]

@@ -21,7 +21,6 @@ import math
 from collections.abc import Sequence
 
 import torch
-import torch.nn.functional as F
 
 from torchpf.camera import CameraRig
 from torchpf.geometry import (
@@ -33,6 +32,8 @@ from torchpf.geometry import (
     project_capsules,
     sample_in_capsules,
 )
+from torchpf.geometry.chamfer import distance_lookup as _distance_lookup
+from torchpf.geometry.chamfer import sample_image as _sample
 from torchpf.likelihoods.base import LIKELIHOODS, Body, Likelihood, resolve_joints
 from torchpf.observations import DistanceMaps, Silhouettes
 
@@ -185,35 +186,10 @@ def _foreground(obs: Silhouettes, n: int, S: int, like: torch.Tensor) -> tuple[t
     return _per_camera(fg.to(like), S, 2), _per_camera(ok.to(like.device), S, 0)
 
 
-def _sample(image: torch.Tensor, uv: torch.Tensor, mode: str, padding: str) -> torch.Tensor:
-    """``grid_sample`` of images (*G, H, W) at pixel coords uv (B, ..., 2): one image for all points, or
-    one per group of rows (the B rows are G groups of equal size in the images' order: sequences of a
-    batch as in Body.rows, or the (S, V) images of camera-major (S, V, N, P, 2) points, one call for every
-    camera). Returns (B, ...)."""
-    H, W = image.shape[-2:]
-    images = image.reshape(-1, 1, H, W).to(uv)
-    # pixel centres at integers, align_corners=False: (2 u + 1) / W - 1, one multiply-add for u and v
-    scale, shift = uv.new_tensor([2.0 / W, 2.0 / H]), uv.new_tensor([1.0 / W - 1.0, 1.0 / H - 1.0])
-    grid = torch.addcmul(shift, uv, scale).reshape(len(images), 1, -1, 2)
-    out = F.grid_sample(images, grid, mode=mode, padding_mode=padding, align_corners=False)
-    return out.reshape(uv.shape[:-1])
-
-
 def _lookup(image: torch.Tensor, uv: torch.Tensor, mode: str = "bilinear") -> torch.Tensor:
     """Look-up of an (H, W) image (or (S, H, W), one per sequence) at (B, ..., 2) pixel coords (u, v),
     "bilinear" or "nearest"; 0 outside."""
     return _sample(image, uv, mode, "zeros")
-
-
-def _distance_lookup(dist: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
-    """Distance-image look-up that keeps growing outside the image: value at the nearest border pixel plus
-    the distance to it, so a marker that leaves the image is not mistaken for a close one. ``dist`` (H, W)
-    or (S, H, W), as in :func:`_lookup`."""
-    H, W = dist.shape[-2:]
-    inside = torch.clamp(uv, uv.new_zeros(2), uv.new_tensor([W - 1.0, H - 1.0]))
-    off = uv - inside
-    extra = off.square().sum(-1).clamp_min(1e-12).sqrt() * (off.abs().sum(-1) > 0)
-    return _sample(dist, inside, "bilinear", "border") + extra
 
 
 @LIKELIHOODS.register("silhouette")

@@ -14,7 +14,7 @@ from torchpf.geometry import (
     project_capsules,
     sample_in_capsules,
 )
-from torchpf.likelihoods.images import _distance_lookup
+from torchpf.geometry.chamfer import distance_lookup as _distance_lookup
 from torchpf.observations import Silhouettes
 
 from .._masks import render_masks
