@@ -84,11 +84,11 @@ def capsule_chamfer(
 
 
 def sample_image(image: Tensor, uv: Tensor, mode: str = "bilinear", padding: str = "zeros") -> Tensor:
-    """``grid_sample`` of images (*G, H, W) at pixel coords uv (B, ..., 2), pixel centres at integers (u
-    right, v down): one image for all points, or one per group of rows (the B rows are G groups of equal
-    size in the images' order: sequences of a batch as in Body.rows, or the (S, V) images of camera-major
-    (S, V, N, P, 2) points, one call for every camera). ``mode`` "bilinear" or "nearest"; ``padding``
-    "zeros" or "border" outside the image. Returns (B, ...)."""
+    """``grid_sample`` of images ``(..., H, W)`` (G in all) at pixel coords ``uv (B, ..., 2)``, pixel
+    centres at integers (u right, v down): one image for all points, or one per group of rows (the B rows
+    are G groups of equal size in the images' order: sequences of a batch as in ``Body.rows``, or the
+    ``(S, V)`` images of camera-major ``(S, V, N, P, 2)`` points, one call for every camera). ``mode``
+    "bilinear" or "nearest"; ``padding`` "zeros" or "border" outside the image. Returns ``(B, ...)``."""
     H, W = image.shape[-2:]
     images = image.reshape(-1, 1, H, W).to(uv)
     # pixel centres at integers, align_corners=False: (2 u + 1) / W - 1, one multiply-add for u and v
