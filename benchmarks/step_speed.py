@@ -25,6 +25,10 @@ e.g. at another commit::
 
     git stash; python -m benchmarks.step_speed --save out/before.json; git stash pop
     python -m benchmarks.step_speed --baseline out/before.json
+
+``--device cuda --paths apf,hybrid`` runs the trackers on a GPU (wall clock: a GPU's work is asynchronous);
+``--particles`` sets the evaluations per frame; ``--cmu-dir`` finds the clips where ``../shared`` is not
+beside the checkout (a GPU machine). The rendering and the body fit come first: give a GPU run a minute.
 """
 
 from __future__ import annotations
