@@ -9,7 +9,8 @@
 * :mod:`priors.proposals`: data-driven importance distributions ``SilhouetteGuided`` (Hauberg eq. 12),
   ``DepthGuided`` (Hauberg eq. 13-14) and the ``AngularRejection`` baseline (Hauberg eq. 4).
 * :mod:`priors.action`: the action model Γ = (Ω, ĝ, σ), ``ActionConstrained`` dynamics (Rius eq. 1-6, or
-  a soft prior) and the phase-advance importance distribution ``ActionProposal``.
+  a soft prior), the phase-advance importance distribution ``ActionProposal`` and ``ActionSubspace``, the
+  aSpace as the coordinates of a gradient refinement (the hybrid filter refines on the action's manifold).
 * :mod:`priors.bank`: ``ActionBank``, several action models with the action as a discrete particle state.
 
 Each motion prior is a :class:`torchpf.distributions.Dynamics` (an ``nn.Module``): ``sample(x, generator, *,
@@ -31,6 +32,7 @@ _LAZY = {
     "ActionModel": "priors.action",
     "ActionConstrained": "priors.action",
     "ActionProposal": "priors.action",
+    "ActionSubspace": "priors.action",
     "read_name_map": "priors.action",
     "ActionBank": "priors.bank",
 }

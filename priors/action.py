@@ -363,6 +363,16 @@ class ActionModel(nn.Module):
         log_p, soft = self._soft(self.project(theta))
         return (log_p.exp() * soft).sum(-1)
 
+    def log_soft_accept_probability(self, theta: Tensor) -> Tensor:
+        """``log`` of :meth:`soft_accept_probability` ``(..., D_full) -> (...)``, computed in log space (a
+        log-sum-exp over the ``K`` mean postures), so it stays finite and differentiable far from the action
+        where the probability itself underflows to 0. A pose ``r`` soft-prior stds (``n_sigma σ``) from its
+        matched mean posture scores about ``-r² / 2``."""
+        coords = self.project(theta)
+        log_p, _ = self._match(coords)
+        z = (coords.unsqueeze(-2) - self.mean_performance.to(coords)) / (self.n_sigma * self.std.to(coords))
+        return torch.logsumexp(log_p - 0.5 * z.square().sum(-1), -1)
+
     def phase_step(self, theta: Tensor, postures: float) -> Tensor:
         """Posture displacement of phase advance along ĝ: ``(..., D_full) -> (..., D_full)``.
 
@@ -743,6 +753,114 @@ def _savez_atomic(path: str | os.PathLike, **arrays) -> None:
 
 
 # ================================================================================================ dynamics
+class ActionSubspace:
+    """The aSpace as the coordinates of a gradient refinement (:class:`torchpf.refine.RefineSpace`).
+
+    A pose refined on the silhouettes alone moves the DOFs the silhouettes leave free (a forearm's roll, a
+    hip's rotation about a limb) and follows the masks' defects. Refined in its action model's aSpace
+    (Rius eq. 1, Brubaker eq. 14), a posture stays a combination of the action's ``D`` principal postures:
+    ``x_p = μ + Σ_i u_i c_i`` on the posture DOFs, with the ``c`` and the DOFs outside the posture (the root,
+    the channels the fitter left out) as the coordinates. On the held-out walk of subject 35 under ``track``'s
+    hybrid filter this took the error from 66 to 47 mm (BENCHMARKS.md, "Learned priors ... hybrid").
+
+    Args:
+        models: ``M`` :class:`ActionModel` s in the poses' DOF order (one for :class:`ActionConstrained`,
+            the bank's for :class:`priors.bank.ActionBank`).
+        choice: ``(..., K)`` long, per pose the model whose aSpace it moves in, ``-1`` for none (refined in
+            all its DOFs, as without a space); fixed for the refinement.
+
+    Coordinates ``y = (x, c_1, ..., c_M)`` ``(..., D_full + Σ_m D_m)``: ``decode`` keeps ``x`` outside the
+    chosen model's posture DOFs and puts ``reconstruct(c_m)`` on them, each angle on the branch nearest the
+    pose's own (``x + wrap(μ + c U - x)``), so a decoded pose stays continuous with where it started. The map
+    is affine in ``c`` on a branch, so ``pullback`` is exact: ``dE/dc_m = U_m (dE/dx)_p``.
+    """
+
+    def __init__(self, models: Sequence[ActionModel], choice: Tensor):
+        self.models = list(models)
+        if not self.models:
+            raise ValueError("ActionSubspace needs at least one action model")
+        names = self.models[0].dof_names
+        if any(m.dof_names != names for m in self.models[1:]):
+            raise ValueError(
+                "ActionSubspace: the action models must share one DOF order (ActionModel.for_dof_names)"
+            )
+        self.choice = choice
+        #: ``(..., K)`` bool, the poses that move in an aSpace
+        self.active = choice >= 0
+        self.n_dofs = len(names)
+        sizes = [m.n_components for m in self.models]
+        self._slices = [
+            slice(self.n_dofs + sum(sizes[:i]), self.n_dofs + sum(sizes[: i + 1])) for i in range(len(sizes))
+        ]
+
+    @classmethod
+    def around(cls, models: Sequence[ActionModel], x: Tensor, radius: float | None) -> ActionSubspace:
+        """The space for poses ``x (..., K, D_full)``, each in the aSpace of the model that scores it highest
+        if within ``radius`` soft-prior stds of its mean postures (:func:`manifold_choice`)."""
+        return cls(models, manifold_choice(models, x, radius))
+
+    def _on(self, i: int, like: Tensor) -> Tensor:
+        """``(..., K, 1)`` bool: the poses that move in model ``i``'s aSpace."""
+        return (self.choice == i).to(like.device).unsqueeze(-1)
+
+    def encode(self, x: Tensor) -> Tensor:
+        """``(x, project_1(x), ..., project_M(x))`` ``(..., D_full + Σ D_m)``."""
+        return torch.cat([x, *(m.project(x) for m in self.models)], -1)
+
+    def decode(self, y: Tensor) -> Tensor:
+        """Poses ``(..., D_full)``: each chosen model's reconstructed posture on its posture DOFs."""
+        x = y[..., : self.n_dofs]
+        out = x
+        for i, (m, sl) in enumerate(zip(self.models, self._slices, strict=True)):
+            index = m.posture_index.to(x.device)
+            old = x.index_select(-1, index)
+            new = m.reconstruct(y[..., sl])
+            new = torch.where(m.angular.to(x.device), old + wrap_angle(new - old), new)
+            posed = x.scatter(-1, index.expand(*new.shape[:-1], -1), new)
+            out = torch.where(self._on(i, x), posed, out)
+        return out
+
+    def pullback(self, y: Tensor, grad_x: Tensor) -> Tensor:
+        """``J^T grad_x`` ``(..., D_full + Σ D_m)``: a chosen model's posture DOFs pass their gradient to its
+        ``c`` (``grad_p U^T``) and none to ``x``."""
+        g_x = grad_x
+        parts = []
+        for i, m in enumerate(self.models):
+            on = self._on(i, grad_x)
+            index = m.posture_index.to(grad_x.device)
+            g_c = grad_x.index_select(-1, index) @ m.components.to(grad_x).transpose(0, 1)
+            parts.append(torch.where(on, g_c, 0.0))
+            g_x = torch.where(on, g_x.index_fill(-1, index, 0.0), g_x)
+        return torch.cat([g_x, *parts], -1)
+
+    def step_sizes(self, lr: Tensor) -> Tensor:
+        """The DOFs keep their steps; a model's ``c`` (radians along unit posture directions) takes the
+        largest step of its posture DOFs."""
+        steps = [
+            lr.index_select(-1, m.posture_index.to(lr.device)).max().expand(m.n_components)
+            for m in self.models
+        ]
+        return torch.cat([lr, *steps], -1)
+
+
+def manifold_choice(models: Sequence[ActionModel], x: Tensor, radius: float | None) -> Tensor:
+    """Per pose ``x (..., D_full)`` the model of ``models`` whose soft prior
+    (:meth:`ActionModel.log_soft_accept_probability`) scores it highest, or ``-1`` where none scores it at
+    least ``-radius² / 2`` (the pose lies more than ``radius`` soft-prior stds from every mean posture: not
+    this action, refine it freely) or ``radius`` is None. ``(...)`` long."""
+    if radius is None:
+        return torch.full(x.shape[:-1], -1, dtype=torch.long, device=x.device)
+    score = torch.stack([m.log_soft_accept_probability(x) for m in models], -1)
+    best, choice = score.max(-1)
+    return torch.where(best >= -0.5 * float(radius) ** 2, choice, -1)
+
+
+def _radius(value: float | None) -> float | None:
+    if value is not None and not float(value) > 0:
+        raise ValueError(f"manifold_radius must be > 0 or None, got {value}")
+    return None if value is None else float(value)
+
+
 class ActionConstrained(Dynamics):
     """Action-constrained first-order dynamics (Rius eq. 3-6), a stateful dynamics for the filters.
 
@@ -800,6 +918,11 @@ class ActionConstrained(Dynamics):
             ``None``: the model's rate.
         min_accept: below this share of accepted first draws a frame falls back to the plain dynamics
             (0 never falls back).
+        manifold_radius: a filter that refines poses by gradient
+            (:class:`torchpf.filters.HybridParticleFilter`) refines a pose in the model's aSpace
+            (:meth:`refine_space`, :class:`ActionSubspace`) where it lies within this many soft-prior stds
+            (``n_sigma σ``) of a mean posture, freely elsewhere (a pose of another action); ``None``: always
+            freely.
 
     Example::
 
@@ -820,8 +943,10 @@ class ActionConstrained(Dynamics):
         fps: float | None = None,
         min_accept: float = 0.01,
         mode: str = "rius",
+        manifold_radius: float | None = 4.0,
     ):
         super().__init__()
+        self.manifold_radius = _radius(manifold_radius)
         if mode not in ("rius", "soft"):
             raise ValueError(f"mode must be 'rius' (eq. 6's 0/1 test) or 'soft', got {mode!r}")
         self.mode = mode
@@ -842,6 +967,12 @@ class ActionConstrained(Dynamics):
         self.dynamics = as_dynamics(dynamics)
         self.max_tries = int(max_tries)
         self.min_accept = float(min_accept)
+
+    def refine_space(self, x: Tensor) -> ActionSubspace:
+        """Coordinates in which a gradient refinement moves poses ``x (..., K, D)``: the model's aSpace for
+        the poses within ``manifold_radius`` of the action (:func:`manifold_choice`), their DOFs for the
+        others (:class:`ActionSubspace`)."""
+        return ActionSubspace.around([self.model], x, self.manifold_radius)
 
     def _accepted(self, x: Tensor) -> Tensor:
         """``(..., N)`` bool: eq. 6 can accept ``x`` (``P(accept | x) > 0``)."""
@@ -940,7 +1071,10 @@ class ActionConstrained(Dynamics):
         return base + torch.log(self.min_accept + (1.0 - self.min_accept) * p)
 
     def extra_repr(self) -> str:
-        return f"mode={self.mode!r}, max_tries={self.max_tries}, min_accept={self.min_accept:g}"
+        return (
+            f"mode={self.mode!r}, max_tries={self.max_tries}, min_accept={self.min_accept:g}, "
+            f"manifold_radius={self.manifold_radius}"
+        )
 
 
 class ActionProposal(nn.Module):
@@ -968,6 +1102,8 @@ class ActionProposal(nn.Module):
         beta: share of draws from the dynamics, in [0, 1).
         sigma_scale: multiplies the posture noise σ_φ.
         skeleton: the particles' skeleton (puts the model in its DOF order).
+        manifold_radius: as :class:`ActionConstrained`'s: a gradient refinement moves a pose within this
+            many soft-prior stds of the action in its aSpace (:meth:`refine_space`); ``None``: never.
 
     Example::
 
@@ -985,8 +1121,10 @@ class ActionProposal(nn.Module):
         beta: float = 0.3,
         sigma_scale: float = 1.0,
         skeleton=None,
+        manifold_radius: float | None = 4.0,
     ):
         super().__init__()
+        self.manifold_radius = _radius(manifold_radius)
         if not 0.0 <= float(beta) < 1.0:
             raise ValueError(f"beta must be in [0, 1), got {beta}")
         if skeleton is not None:
@@ -1003,6 +1141,11 @@ class ActionProposal(nn.Module):
         noise[model.posture_index] = model.sigma_phi[model.posture_index] * float(sigma_scale)
         self.register_buffer("noise", noise.clamp_min(1e-6))
         self.beta = float(beta)
+
+    def refine_space(self, x: Tensor) -> ActionSubspace:
+        """As :meth:`ActionConstrained.refine_space`: the model's aSpace for poses ``x (..., K, D)`` that
+        perform the action, their DOFs for the others."""
+        return ActionSubspace.around([self.model], x, self.manifold_radius)
 
     def mean(self, x: Tensor) -> Tensor:
         """Phase-advanced poses ``(..., N, D) -> (..., N, D)``."""

@@ -33,7 +33,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from priors.action import ActionConstrained, ActionModel
+from priors.action import ActionConstrained, ActionModel, ActionSubspace
 from torchpf.distributions import Dynamics, as_dynamics, flatten_batch, unflatten_batch
 
 
@@ -47,6 +47,9 @@ class ActionBank(Dynamics):
             spread evenly over the other actions.
         switch: per-frame switching probability of the default ``transition``.
         mode, fps, skeleton, max_tries, min_accept: passed to each :class:`ActionConstrained`.
+        manifold_radius: a gradient refinement moves a pose in the aSpace of the model that scores it highest
+            when it lies within this many soft-prior stds of that model's mean postures, freely otherwise
+            (:meth:`refine_space`); ``None``: always freely.
     """
 
     def __init__(
@@ -61,6 +64,7 @@ class ActionBank(Dynamics):
         skeleton=None,
         max_tries: int = 20,
         min_accept: float = 0.01,
+        manifold_radius: float | None = 4.0,
     ):
         super().__init__()
         models = list(models)
@@ -82,17 +86,31 @@ class ActionBank(Dynamics):
         self.dynamics = base
         self.constrained = nn.ModuleList(
             ActionConstrained(
-                m, base, mode=mode, fps=fps, skeleton=skeleton, max_tries=max_tries, min_accept=min_accept
+                m,
+                base,
+                mode=mode,
+                fps=fps,
+                skeleton=skeleton,
+                max_tries=max_tries,
+                min_accept=min_accept,
+                manifold_radius=manifold_radius,
             )
             for m in models
         )
         self.actions = [c.model.action for c in self.constrained]
         self.min_accept = float(min_accept)
+        self.manifold_radius = self.constrained[0].manifold_radius
         self.register_buffer("transition", transition)
 
     @property
     def n_actions(self) -> int:
         return len(self.constrained)
+
+    def refine_space(self, x: Tensor) -> ActionSubspace:
+        """Coordinates in which a gradient refinement moves poses ``x (..., K, D)``: per pose the aSpace of
+        the action model that scores it highest (:func:`priors.action.manifold_choice`), or its DOFs where
+        it lies more than ``manifold_radius`` from every action."""
+        return ActionSubspace.around([c.model for c in self.constrained], x, self.manifold_radius)
 
     def _soft(self, x: Tensor) -> Tensor:
         """``(..., N, M)`` soft acceptance of each action model."""

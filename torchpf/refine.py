@@ -19,6 +19,12 @@ The optimiser is Adam (Kingma & Ba 2015) run elementwise, so every pose of the b
 limits after every step (projected gradient descent), frozen DOFs (fixed by their limits, or given), and
 keep-best: each pose returns the best iterate it visited, so refinement never makes a pose worse on ``E``.
 
+**Refining in other coordinates.** ``space`` (per call; :class:`RefineSpace`) lets the optimiser move other
+coordinates ``y`` of the poses, ``x = clamp(decode(y))``, with the gradient pulled back through ``decode``
+(``dE/dy = J^T dE/dx``, ``J = d decode / dy``): e.g. an action model's aSpace (Rius eq. 1), so a refined
+posture stays in the action's principal subspace (:class:`priors.action.ActionSubspace`) instead of moving
+the DOFs the silhouettes leave free. Without one the poses' own DOFs are the coordinates.
+
 Cost: one step is one forward and one backward pass of the cue for the ``K`` poses, about
 :attr:`Refiner.cost_per_step` likelihood evaluations each (forward + backward ~ 3 forwards, the usual
 reverse-mode ratio; ``python -m benchmarks.refine`` measures it); :meth:`Refiner.evaluations` counts them
@@ -35,11 +41,31 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
 
 import torch
 from torch import Tensor, nn
 
-__all__ = ["RefineResult", "Refiner"]
+__all__ = ["RefineResult", "RefineSpace", "Refiner"]
+
+
+@runtime_checkable
+class RefineSpace(Protocol):
+    """Coordinates ``y (..., E)`` in which :class:`Refiner` moves poses ``x (..., D)`` (module docstring).
+
+    ``encode(x)`` gives the start ``y`` of poses ``x``; ``decode(y)`` the poses (the refiner clamps them to
+    the joint limits); ``pullback(y, grad_x)`` the gradient ``J^T grad_x (..., E)`` of ``decode`` at ``y``;
+    ``step_sizes(lr)`` the Adam step per coordinate ``(E,)`` from the refiner's per-DOF steps ``lr (D,)``
+    (0 freezes a coordinate).
+    """
+
+    def encode(self, x: Tensor) -> Tensor: ...
+
+    def decode(self, y: Tensor) -> Tensor: ...
+
+    def pullback(self, y: Tensor, grad_x: Tensor) -> Tensor: ...
+
+    def step_sizes(self, lr: Tensor) -> Tensor: ...
 
 
 @dataclass
@@ -145,10 +171,13 @@ class Refiner(nn.Module):
             (grad,) = torch.autograd.grad(loss.sum(), xr)
         return loss.detach(), grad
 
-    def forward(self, x: Tensor, obs, log_prior=None) -> RefineResult:
+    def forward(self, x: Tensor, obs, log_prior=None, space: RefineSpace | None = None) -> RefineResult:
         """Refine poses ``x (..., K, D)`` on observation ``obs``; returns a :class:`RefineResult`.
 
         ``log_prior``: optional differentiable ``x (..., K, D) -> (..., K)`` log-prior added to the cue.
+        ``space``: optional :class:`RefineSpace` whose coordinates the optimiser moves (default the DOFs);
+        its ``decode(encode(x))`` is the first iterate, so a space that is a subset of poses (a subspace)
+        starts from ``x``'s image there.
 
         Computes its gradients whatever the caller's grad mode (a filter calls it under ``no_grad``); the
         result is detached. A pose whose objective is not finite is left where it is.
@@ -157,25 +186,42 @@ class Refiner(nn.Module):
         # gradient at a NaN coordinate reads out of bounds); a finite stand-in runs in its place.
         finite = torch.isfinite(x).all(-1, keepdim=True)
         x0 = torch.where(finite, x.detach(), self.clamp(torch.zeros_like(x)))
-        lr = self.lr.to(x0)
         # the limits once in the poses' dtype (what self.clamp does, without its per-call conversions)
         lo = self.skeleton.lower.to(x0)
         hi = self.skeleton.upper.to(x0)
+
+        def limited(z):
+            return torch.maximum(torch.minimum(z, hi), lo)
+
+        if space is None:  # the DOFs themselves, each iterate projected onto the limits
+            cur, lr = x0.clone(), self.lr.to(x0)
+
+            def decode(y):
+                return y
+
+        else:  # the space's coordinates, left free; the poses they decode to are projected
+            cur, lr = space.encode(x0), space.step_sizes(self.lr.to(x0)).to(x0)
+
+            def decode(y):
+                return limited(space.decode(y))
+
         b1, b2, eps = 0.9, 0.999, 1e-8
-        cur = x0.clone()
         m = torch.zeros_like(cur)
         v = torch.zeros_like(cur)
-        best = cur.clone()
+        best = decode(cur)
         best_loss = torch.full(cur.shape[:-1], math.inf, dtype=cur.dtype, device=cur.device)
         first = None
         for step in range(self.steps):
-            loss, grad = self.objective_and_grad(cur, obs, log_prior)
+            pose = decode(cur)
+            loss, grad = self.objective_and_grad(pose, obs, log_prior)
             if first is None:
                 first = loss
             better = loss < best_loss  # NaN compares False: a non-finite iterate is never kept
-            best = torch.where(better.unsqueeze(-1), cur, best)
+            best = torch.where(better.unsqueeze(-1), pose, best)
             best_loss = torch.where(better, loss, best_loss)
             grad = torch.nan_to_num(grad, nan=0.0, posinf=0.0, neginf=0.0)
+            if space is not None:
+                grad = space.pullback(cur, grad)
             # Adam with bias correction, in place and in few operations (each costs microseconds at these
             # sizes): m <- b1 m + (1 - b1) g, v <- b2 v + (1 - b2) g^2,
             # x <- x - decay lr (m / (1 - b1^k)) / (sqrt(v / (1 - b2^k)) + eps)
@@ -185,13 +231,15 @@ class Refiner(nn.Module):
             v.mul_(b2).addcmul_(grad, grad, value=1 - b2)
             denom = v.mul(1.0 / (1 - b2**k)).sqrt_().add_(eps)
             cur = cur.addcmul(lr, m.div(denom), value=-decay / (1 - b1**k))
-            cur = torch.maximum(torch.minimum(cur, hi), lo)
+            if space is None:
+                cur = limited(cur)
+        pose = decode(cur)
         with torch.no_grad():
-            last = self.objective(cur, obs, log_prior)
+            last = self.objective(pose, obs, log_prior)
         if first is None:
             first = last
         better = last < best_loss
-        best = torch.where(better.unsqueeze(-1), cur, best)
+        best = torch.where(better.unsqueeze(-1), pose, best)
         best_loss = torch.where(better, last, best_loss)
         stuck = ~torch.isfinite(best_loss).unsqueeze(-1) | ~finite  # never finite: keep the start pose
         best = torch.where(stuck, x.detach(), best)
