@@ -373,6 +373,46 @@ class ActionModel(nn.Module):
         z = (coords.unsqueeze(-2) - self.mean_performance.to(coords)) / (self.n_sigma * self.std.to(coords))
         return torch.logsumexp(log_p - 0.5 * z.square().sum(-1), -1)
 
+    @property
+    def residual_variance(self) -> float | None:
+        """Per-dimension variance of the training postures off the aSpace (rad²): the PCA's discarded
+        variance over the ``P - D`` discarded directions (Tipping & Bishop 1999, eq. 8); ``None`` where the
+        model does not store its explained variances or keeps every direction."""
+        ev, ratio = self.explained_variance, self.explained_variance_ratio
+        P, D = self.components.shape[1], self.components.shape[0]
+        if P <= D or not bool((ev > 0).all() and (ratio > 0).all()):
+            return None
+        total = float((ev / ratio).mean())  # each component's variance over its share: the total variance
+        return max(total * (1.0 - float(ratio.sum())) / (P - D), 1e-12)
+
+    def log_density(self, theta: Tensor) -> Tensor:
+        """``log p(x | action)`` of poses' postures ``(..., D_full) -> (...)``, a normalised density over the
+        ``P`` posture DOFs, so that models of different actions (and aSpace dimensions) compare:
+
+        * in the aSpace, a mixture over the ``K`` mean postures (uniform weights) of Gaussians of std
+          ``n_sigma σ_k`` around ``ĝ_k``, the soft prior's Gaussians (:meth:`soft_accept_probability`) with
+          their normalisers;
+        * off it, an isotropic Gaussian of the residual ``x - μ - c U`` with :attr:`residual_variance`
+          (probabilistic PCA, Tipping & Bishop 1999); left out where the model has none.
+
+        The soft prior alone is not normalised: a loose model (one performer, few components) would win
+        every comparison. Used to tell actions apart (:class:`priors.bank.ActionBank`)."""
+        x = self.postures(theta)
+        d = x - self.pca_mean.to(x)
+        U = self.components.to(x)
+        c = d @ U.transpose(0, 1)
+        D = self.n_components
+        s = self.n_sigma * self.std.to(x)  # (K, D)
+        z = (c.unsqueeze(-2) - self.mean_performance.to(x)) / s
+        log_k = -0.5 * z.square().sum(-1) - s.log().sum(-1) - 0.5 * D * math.log(2 * math.pi)
+        out = torch.logsumexp(log_k, -1) - math.log(self.n_postures)
+        var = self.residual_variance
+        if var is not None:
+            r = d - c @ U
+            n = U.shape[1] - D
+            out = out - 0.5 * r.square().sum(-1) / var - 0.5 * n * math.log(2 * math.pi * var)
+        return out
+
     def phase_step(self, theta: Tensor, postures: float) -> Tensor:
         """Posture displacement of phase advance along ĝ: ``(..., D_full) -> (..., D_full)``.
 
@@ -844,15 +884,21 @@ class ActionSubspace:
 
 
 def manifold_choice(models: Sequence[ActionModel], x: Tensor, radius: float | None) -> Tensor:
-    """Per pose ``x (..., D_full)`` the model of ``models`` whose soft prior
-    (:meth:`ActionModel.log_soft_accept_probability`) scores it highest, or ``-1`` where none scores it at
-    least ``-radius² / 2`` (the pose lies more than ``radius`` soft-prior stds from every mean posture: not
-    this action, refine it freely) or ``radius`` is None. ``(...)`` long."""
+    """Per pose ``x (..., D_full)`` the model of ``models`` most likely to have produced it
+    (:meth:`ActionModel.log_density`), or ``-1`` where that model's soft prior
+    (:meth:`ActionModel.log_soft_accept_probability`) scores it below ``-radius² / 2`` (the pose lies more
+    than ``radius`` soft-prior stds from every mean posture: not this action, refine it freely) or ``radius``
+    is None. ``(...)`` long."""
     if radius is None:
         return torch.full(x.shape[:-1], -1, dtype=torch.long, device=x.device)
-    score = torch.stack([m.log_soft_accept_probability(x) for m in models], -1)
-    best, choice = score.max(-1)
-    return torch.where(best >= -0.5 * float(radius) ** 2, choice, -1)
+    if len(models) == 1:
+        choice = torch.zeros(x.shape[:-1], dtype=torch.long, device=x.device)
+        score = models[0].log_soft_accept_probability(x)
+    else:
+        choice = torch.stack([m.log_density(x) for m in models], -1).argmax(-1)
+        soft = torch.stack([m.log_soft_accept_probability(x) for m in models], -1)
+        score = soft.gather(-1, choice.unsqueeze(-1)).squeeze(-1)
+    return torch.where(score >= -0.5 * float(radius) ** 2, choice, -1)
 
 
 def _radius(value: float | None) -> float | None:

@@ -10,7 +10,8 @@ a_{t-1} = a)``) before the prediction:
    (:class:`priors.action.ActionConstrained`, all sharing one plain ``dynamics``; ``mode="soft"`` by default,
    so a model's rejection is a soft preference, and each falls back to the plain dynamics on its own);
 3. once the frame's particles are final, each particle's responsibilities ``r_a ∝ T[a_{t-1}, a] ·
-   soft_a(x_t)`` (:meth:`priors.action.ActionModel.soft_accept_probability`) are the extra
+   p(x_t | a)`` (:meth:`priors.action.ActionModel.log_density`, a normalised density of the posture under
+   each action, so a loosely fitted model does not claim every pose) are the extra
    ``"action_prob"`` ``(..., N, M)`` and its action label ``"action"`` ``(..., N)`` their argmax.
 
 The per-frame posterior over actions, ``P(a_t = a | z_{1:t}) ≈ Σ_i w_i r_{i,a}``, is the filter statistic
@@ -117,10 +118,12 @@ class ActionBank(Dynamics):
         return torch.stack([c.model.soft_accept_probability(x).to(x.dtype) for c in self.constrained], -1)
 
     def _responsibilities(self, x: Tensor, prior: Tensor) -> Tensor:
-        """``r ∝ prior · soft(x)``, ``(..., N, M)``; a pose no model likes keeps the prior."""
-        r = prior * self._soft(x)
-        total = r.sum(-1, keepdim=True)
-        return torch.where(total > 0, r / total.clamp_min(1e-300), prior)
+        """``r ∝ prior · p(x | a)`` ``(..., N, M)`` (:meth:`ActionModel.log_density`, in log space: the
+        densities of ~50 posture DOFs span hundreds of nats); a pose without a finite density keeps the
+        prior."""
+        log_density = torch.stack([c.model.log_density(x).to(x.dtype) for c in self.constrained], -1)
+        r = torch.softmax(prior.log() + log_density, -1)
+        return torch.where(torch.isfinite(r).all(-1, keepdim=True), r, prior)
 
     def init_extras(self, x0: Tensor) -> dict[str, Tensor]:
         """The plain dynamics' extras, ``"action_prob"`` from a uniform prior and ``"action"`` its argmax."""
@@ -130,7 +133,7 @@ class ActionBank(Dynamics):
         return {**self.dynamics.init_extras(x0), "action_prob": prob, "action": prob.argmax(-1)}
 
     def update_extras(self, x_new: Tensor, x_old: Tensor, extras: Mapping[str, Tensor]) -> dict[str, Tensor]:
-        """Responsibilities ``r ∝ T[a_{t-1}] · soft(x_t)`` and the plain dynamics' extras."""
+        """Responsibilities ``r ∝ T[a_{t-1}] · p(x_t | a)`` and the plain dynamics' extras."""
         inner = {k: v for k, v in extras.items() if k not in ("action_prob", "action")}
         prior = self._prior(extras, x_new)
         prob = self._responsibilities(x_new, prior)

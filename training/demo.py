@@ -6,8 +6,10 @@
    performer's walk but not bending or waving;
 3. synthesise a multi-camera sequence of the held-out performer (silhouettes with segmentation noise);
 4. track it with several filters at the same number of likelihood evaluations per frame: CONDENSATION, the
-   annealed and the partitioned particle filter with the angular random walk, and CONDENSATION with the
-   best learned prior of ``benchmarks/action_prior.py`` (the action model's soft aSpace prior);
+   annealed and the partitioned particle filter with the angular random walk, CONDENSATION with the
+   action model's soft aSpace prior (the best learned prior under it in ``benchmarks/action_prior.py``),
+   and ``track``'s default hybrid filter (APF + gradient refinement) with the random walk and with the
+   action model (eq. 6), whose refinement then stays in the action's aSpace;
 5. print a metrics table (Fontmarty eq. 3-6, ESS, time) and save plots and mask overlays under ``--out``.
 
     python -m training.demo --out out [--particles 600] [--frames 24] [--seed 0]
@@ -182,6 +184,12 @@ def main(argv: list[str] | None = None) -> int:
         # the best learned prior of benchmarks/action_prior.py (BENCHMARKS.md, issue 14): soft aSpace prior
         "CONDENSATION + action model (soft)": dict(
             filter="sir", dynamics="action", dynamics_options={"model": model_path, "mode": "soft", **rw}
+        ),
+        # track's default filter: APF layers, then gradient refinement, which an action model keeps on the
+        # action's manifold (its aSpace, priors.action.ActionSubspace)
+        "HYBRID + random walk": dict(filter="hybrid", dynamics="random_walk", dynamics_options=rw),
+        "HYBRID + action model": dict(
+            filter="hybrid", dynamics="action", dynamics_options={"model": model_path, **rw}
         ),
     }
     truth = skel.fk(angles)

@@ -520,3 +520,31 @@ def test_phase_advance_follows_the_mean_performance_and_its_proposal_density_is_
     pf = ParticleFilter(dyn, likelihood, proposal=q, n_particles=200, progress=False)
     track = pf.run([parents[0]] * 3, parents[:1].expand(200, -1).clone(), generator=0)
     assert not track.failed.any() and torch.isfinite(track.estimates).all()
+
+
+def test_log_density_is_the_probabilistic_pca_mixture_density():
+    """Against scipy: each mean posture is a Gaussian over the P posture DOFs with covariance
+    ``U^T diag((n_sigma σ_k)²) U + v (I - U^T U)`` (v the discarded variance per direction), mixed
+    uniformly; and the soft prior it extends is the aSpace part without its normalisers."""
+    from scipy.stats import multivariate_normal
+
+    model = tiny_model(explained_variance=[0.5, 0.1], explained_variance_ratio=[0.6, 0.12])
+    v = model.residual_variance
+    assert v == pytest.approx((0.5 / 0.6) * (1 - 0.72) / 1)
+    theta = near_mean_poses(model, 30, spread=0.3, seed=9)
+    theta[:, model.posture_index] += 0.05  # off the aSpace too
+    U = model.components.numpy()
+    P = U.shape[1]
+    x = model.postures(theta).numpy()
+    ref = []
+    for k in range(model.n_postures):
+        mean = model.pca_mean.numpy() + model.mean_performance[k].numpy() @ U
+        s = model.n_sigma * model.std[k].numpy()
+        cov = U.T @ np.diag(s**2) @ U + v * (np.eye(P) - U.T @ U)
+        ref.append(multivariate_normal(mean, cov).logpdf(x))
+    ref = np.logaddexp.reduce(np.stack(ref), axis=0) - np.log(model.n_postures)
+    np.testing.assert_allclose(model.log_density(theta).numpy(), ref, rtol=1e-10, atol=1e-10)
+    # without stored explained variances there is no residual term: the aSpace mixture alone
+    bare = tiny_model()
+    assert bare.residual_variance is None
+    assert torch.isfinite(bare.log_density(theta)).all()

@@ -38,6 +38,23 @@ def test_the_posterior_names_the_action_the_poses_belong_to():
     assert track.final_state.extras["action"].shape == (200,)
 
 
+def test_a_loose_model_does_not_claim_the_poses_of_a_tight_one():
+    """Responsibilities compare normalised densities (ActionModel.log_density): a model fitted loosely (10x
+    the spread, like a one-performer model) scores every pose higher on the unnormalised soft prior, yet
+    the poses of the tight model's action stay with it, and the loose model keeps its own far poses."""
+    tight = tiny_model(action="walk")
+    loose = tiny_model(action="run", std=10 * tight.std)
+    bank = ActionBank(
+        [tight, loose], GaussianRandomWalk(torch.full((len(NAMES),), 0.01, dtype=torch.float64))
+    )
+    near = near_mean_poses(tight, 100, 0.02)
+    assert (loose.soft_accept_probability(near) > tight.soft_accept_probability(near)).all()
+    uniform = torch.full((100, 2), 0.5, dtype=torch.float64)
+    assert (bank._responsibilities(near, uniform).argmax(-1) == 0).all()
+    far = near_mean_poses(tight, 100, 2.0, seed=1)  # 40 sigma of the tight model away, 4 of the loose one
+    assert (bank._responsibilities(far, uniform).argmax(-1) == 1).float().mean() > 0.9
+
+
 def test_switching_follows_the_transition_matrix():
     walk, run = two_models()
     base = GaussianRandomWalk(torch.full((len(NAMES),), 0.01, dtype=torch.float64))
