@@ -2,7 +2,8 @@
 the foreign renderer, at equal likelihood evaluations (issue 14; Rius et al. Fig. 3).
 
     python -m benchmarks.action_prior [--rw 500 2500 10000] [--learned 500 2000] [--seeds 3] [--frames 30]
-        [--test 35_30:walk 35_24:run] [--plot benchmarks/figures/action_prior.png] [--threads 1]
+        [--test 35_02:walk 35_30:walk 35_24:run 35_26:run] [--filter auto]
+        [--plot benchmarks/figures/action_prior.png] [--threads 1]
 
 Set-up (printed at the start of the run):
 
@@ -10,12 +11,14 @@ Set-up (printed at the start of the run):
   leave-one-performer-out validation) on the CMU walks of subjects 07, 08 and 16 (``../shared/mocap/cmu``;
   frame 0, a rest pose, dropped) at ``--fps``; the validation curve is printed. The bank's run model comes
   from the one run of a training subject (16_46, D = 6, n_sigma = 4; one performer: no validation).
-* *Test sequences*: held-out subject-35 clips (``--test CLIP:ACTION``, default the walk 35_30 and the run
-  35_24), rendered by the foreign renderer (:mod:`benchmarks.foreign`: a body the tracker's capsules have
-  never seen, ``--defects`` noisy masks, 3 cameras) at ``--fps``, ``--frames`` frames, on the clip's own
-  skeleton; never drawn with :mod:`torchpf.synth`.
+* *Test sequences*: held-out subject-35 clips (``--test CLIP:ACTION``, default all four: the walks 35_02
+  and 35_30, the runs 35_24 and 35_26), rendered by the foreign renderer (:mod:`benchmarks.foreign`: a body
+  the tracker's capsules have never seen, ``--defects`` noisy masks, 3 cameras placed to see all
+  ``--frames`` frames, so a longer cut shows a smaller person) at ``--fps``, on the clip's own skeleton;
+  never drawn with :mod:`torchpf.synth`.
 * *Priors*, each in :class:`torchpf.Tracker` with the default bidirectional silhouette likelihood and the
-  ``--filter`` (default ``sir``, whose ``n_particles`` is the likelihood evaluations per frame):
+  ``--filter`` (default ``auto``, ``track``'s: the hybrid, whose refinement an action model keeps in its
+  aSpace, :class:`priors.action.ActionSubspace`; ``n_particles`` is the likelihood evaluations per frame):
   ``random_walk`` (the structural random walk, the tracker's default, at ``--rw`` evaluations),
   ``rius`` (eq. 6 0/1 rejection around that random walk), ``soft`` (the soft aSpace prior),
   ``proposal`` (:class:`priors.action.ActionProposal`, phase advance along ĝ with its p/q correction) and
@@ -193,7 +196,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument(
         "--test",
         nargs="+",
-        default=["35_30:walk", "35_24:run"],
+        default=["35_02:walk", "35_30:walk", "35_24:run", "35_26:run"],
         help="held-out clips CLIP:ACTION (subject 35)",
     )
     ap.add_argument("--rw", type=int, nargs="+", default=[500, 2500, 10000], help="random-walk evaluations")
@@ -203,10 +206,17 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--fps", type=float, default=30.0, help="tracking and model frame rate")
     ap.add_argument("--components", default="auto", help="aSpace dimension D or 'auto'")
     ap.add_argument("--defects", default="noisy", help="foreign-renderer mask defects preset")
-    ap.add_argument("--filter", default="sir", help="filter (n_particles = evaluations per frame)")
+    ap.add_argument(
+        "--filter", default="auto", help="filter (default: track's; n_particles = evaluations per frame)"
+    )
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
-    ap.add_argument("--plot", type=Path, default=FIGURE, help="PNG of MPJPE against N (rows as .json beside)")
+    ap.add_argument(
+        "--plot",
+        type=lambda s: Path(s) if s else None,
+        default=FIGURE,
+        help="PNG of MPJPE against N (rows as .json beside); '' for none",
+    )
     args = ap.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)

@@ -835,8 +835,8 @@ class ActionSubspace:
 
     @classmethod
     def around(cls, models: Sequence[ActionModel], x: Tensor, radius: float | None) -> ActionSubspace:
-        """The space for poses ``x (..., K, D_full)``, each in the aSpace of the model that scores it highest
-        if within ``radius`` soft-prior stds of its mean postures (:func:`manifold_choice`)."""
+        """The space for poses ``x (..., K, D_full)``, each in the aSpace of its likeliest model if within
+        ``radius`` soft-prior stds of that model's mean postures (:func:`manifold_choice`)."""
         return cls(models, manifold_choice(models, x, radius))
 
     def _on(self, i: int, like: Tensor) -> Tensor:

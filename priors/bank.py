@@ -48,7 +48,7 @@ class ActionBank(Dynamics):
             spread evenly over the other actions.
         switch: per-frame switching probability of the default ``transition``.
         mode, fps, skeleton, max_tries, min_accept: passed to each :class:`ActionConstrained`.
-        manifold_radius: a gradient refinement moves a pose in the aSpace of the model that scores it highest
+        manifold_radius: a gradient refinement moves a pose in the aSpace of its likeliest action model
             when it lies within this many soft-prior stds of that model's mean postures, freely otherwise
             (:meth:`refine_space`); ``None``: always freely.
     """
@@ -109,8 +109,8 @@ class ActionBank(Dynamics):
 
     def refine_space(self, x: Tensor) -> ActionSubspace:
         """Coordinates in which a gradient refinement moves poses ``x (..., K, D)``: per pose the aSpace of
-        the action model that scores it highest (:func:`priors.action.manifold_choice`), or its DOFs where
-        it lies more than ``manifold_radius`` from every action."""
+        its likeliest action model (:meth:`ActionModel.log_density`, :func:`priors.action.manifold_choice`),
+        or its DOFs where it lies more than ``manifold_radius`` from that action."""
         return ActionSubspace.around([c.model for c in self.constrained], x, self.manifold_radius)
 
     def _soft(self, x: Tensor) -> Tensor:

@@ -33,8 +33,9 @@ the two-sided distance-transform silhouette cue). How the refined poses re-enter
 :class:`priors.action.ActionProposal`) gives the coordinates the refiner moves each
 candidate in (:class:`~torchpf.refine.RefineSpace`): the action's aSpace (Rius eq. 1) for a candidate that
 performs the action, so the refined estimate, and in ``"recentre"`` mode the set that follows it, stays a
-posture the action visits and the prior's rejection test keeps engaging (without it the learned priors fell
-back to their random walk on 98-99 % of the frames). ``refine_space=False`` refines in the DOFs always.
+combination of the action's principal postures instead of following the masks' defects along DOFs the
+silhouettes leave free (BENCHMARKS.md, "Learned priors on a held-out performer"). ``refine_space=False``
+refines in the DOFs always.
 
 Measured on foreign renders (BENCHMARKS.md, "Hybrid search (issue 12)"; CMU 07_01, calibrated body, 500
 evaluations per frame, clean masks): APF 138 mm; hybrid ``"particles"`` 181 mm, ``"estimate"`` 93 mm,
