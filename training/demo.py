@@ -8,8 +8,10 @@
 4. track it with several filters at the same number of likelihood evaluations per frame: CONDENSATION, the
    annealed and the partitioned particle filter with the angular random walk, CONDENSATION with the
    action model's soft aSpace prior (the best learned prior under it in ``benchmarks/action_prior.py``),
-   and ``track``'s default hybrid filter (APF + gradient refinement) with the random walk and with the
-   action model (eq. 6), whose refinement then stays in the action's aSpace;
+   and ``track``'s default hybrid filter (APF + gradient refinement) with the random walk, with the walk
+   model (eq. 6), whose refinement then stays in the action's aSpace, and with a bank of the walk, bend and
+   wave models (the best learned prior of ``benchmarks/action_prior.py``), whose posterior over the actions
+   names what the person does;
 5. print a metrics table (Fontmarty eq. 3-6, ESS, time) and save plots and mask overlays under ``--out``.
 
     python -m training.demo --out out [--particles 600] [--frames 24] [--seed 0]
@@ -24,6 +26,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from priors.bank import ActionBank
+from priors.factories import random_walk
 from torchpf import Skeleton, metrics
 from torchpf.camera import camera_ring
 from torchpf.distributions import as_generator
@@ -160,6 +164,14 @@ def main(argv: list[str] | None = None) -> int:
         "wave": float(model.accepts(load_csv(csvs["wave"][0]).angles, gen).double().mean()),
     }
     print(f"2. action model ({args.components} aSpace dims, {len(train)} performers) -> {model_path}")
+    # the other actions' models, for the bank (two performers each)
+    others = [
+        fit_action_model(
+            [load_csv(p) for p in csvs[a]], n_components=args.components, action=a, skeleton=performer
+        )
+        for a in ACTIONS
+        if a != "walk"
+    ]
     print("   acceptance (Rius eq. 6): " + ", ".join(f"{k} {v:.2f}" for k, v in rates.items()))
 
     # 3. a held-out multi-camera sequence
@@ -191,6 +203,14 @@ def main(argv: list[str] | None = None) -> int:
         "HYBRID + action model": dict(
             filter="hybrid", dynamics="action", dynamics_options={"model": model_path, **rw}
         ),
+        # the best learned prior of benchmarks/action_prior.py under the hybrid: a bank of action models,
+        # whose per-frame posterior over the actions recognises what the person does
+        "HYBRID + action bank": dict(
+            filter="hybrid",
+            dynamics=ActionBank(
+                [model, *others], random_walk(skel, fps=args.track_fps), fps=args.track_fps, skeleton=skel
+            ),
+        ),
     }
     truth = skel.fk(angles)
     rows, estimates, errors = [], {}, {}
@@ -205,6 +225,10 @@ def main(argv: list[str] | None = None) -> int:
             **setup,
         )
         result = tracker.track(seq, seed=args.seed)
+        if "action_posterior" in result.stats:
+            labels = [setup["dynamics"].actions[int(i)] for i in result.stats["action_posterior"].argmax(-1)]
+            recognised = {a: labels.count(a) / len(labels) for a in dict.fromkeys(labels)}
+            print(f"   {name}: action posterior " + ", ".join(f"{a} {p:.0%}" for a, p in recognised.items()))
         est = skel.fk(result.angles)
         estimates[name] = result.angles
         errors[name] = (est - truth).norm(dim=-1).mean(-1)
