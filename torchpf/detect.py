@@ -129,7 +129,8 @@ def fit_body_to_frame(
     together. Returns ``(fitted skeleton, CalibrationReport)``; ``report.poses[0]`` is the refined pose.
 
     ``obs`` may also be a list of such frames (consecutive ones, e.g. a sequence's first few): the body is
-    fitted to all of them, every frame's pose starting at ``pose`` and refined on its own
+    fitted to all of them, every frame's pose starting at ``pose`` (or at its own row of a ``(F, D)``
+    ``pose``: ``Tracker.track(init="auto")`` refits at the poses it tracked) and refined on its own
     (``report.poses[k]``). ``init="auto"`` fits one frame: with its body fitted so to the first 5, the 11
     noisy foreign clips tracked at 127 mm against 155, but notebook 05's video-segmented walk at 7.7 cm
     against 5.3 (6 seeds; BENCHMARKS.md).
@@ -154,11 +155,17 @@ def fit_body_to_frame(
             ]
         )
     pose = torch.as_tensor(pose, dtype=torch.float64).cpu()
+    poses = pose[None].expand(len(frames), -1) if pose.ndim == 1 else pose
+    if poses.shape != (len(frames), len(skeleton.dof_names)):
+        raise ValueError(
+            f"pose must be ({len(skeleton.dof_names)},) or one per frame ({len(frames)}, "
+            f"{len(skeleton.dof_names)}), got {tuple(pose.shape)}"
+        )
     return fit_body(
         skeleton,
         cameras,
         frames,
-        pose[None].expand(len(frames), -1),
+        poses,
         frames_used=len(frames),
         iterations=iterations,
         scale_sigma=scale_sigma,

@@ -476,6 +476,10 @@ class Tracker(nn.Module):
         x0[0] = pose  # the given pose itself is one of the hypotheses
         return self.skeleton.clamp(x0)
 
+    #: ``init="auto"`` on an uncalibrated body tracks this many frames, fits the body again at the tracked
+    #: poses and tracks from frame 0 on it (0 or 1: keep the body fitted at the detected pose)
+    auto_refit_frames: int = 8
+
     def with_skeleton(self, skeleton) -> Tracker:
         """The same tracker (all keywords alike) on another skeleton, e.g. a body fitted to the masks."""
         return type(self)(skeleton, self.cameras, **self._options)
@@ -503,7 +507,9 @@ class Tracker(nn.Module):
                 (:meth:`torchpf.detect.PersonDetector.fit`: visual hull, heading and stride search, pose
                 refined by :func:`torchpf.calibrate.fit_body` on frame 0). When the body looks uncalibrated
                 (:func:`torchpf.detect.looks_uncalibrated`, warned) the track runs on the fitted body,
-                returned as ``result.skeleton``.
+                returned as ``result.skeleton``: fitted at the detected pose, the first
+                :attr:`auto_refit_frames` frames tracked on it, then fitted again at those tracked poses
+                (:func:`torchpf.detect.fit_body_to_frame`) and the whole sequence tracked on that body.
             generator: random generator; default one seeded with ``seed`` (0). A generator on another device
                 than the tracker's seeds a new one there (:func:`torchpf.distributions.as_generator`).
             fps: frame rate of the result (default: from the sequence's times, else 30).
@@ -564,7 +570,23 @@ class Tracker(nn.Module):
         elif isinstance(init, str) and init == "auto":
             pose, fitted = self._auto_init(frames, calibrate)
             if fitted is not None:
-                result = self.with_skeleton(fitted).track(
+                tracker = self.with_skeleton(fitted)
+                k = min(int(self.auto_refit_frames), len(frames))
+                if k > 1:
+                    # The body fitted at the detected pose inherits its error for the whole track (the
+                    # gap to a truth-initialised track stayed constant over 60 frames): fit it again, from
+                    # the given skeleton, at the poses the first k frames tracked, then track from frame 0.
+                    from torchpf.detect import fit_body_to_frame
+
+                    first = tracker.track(
+                        [frames[t] for t in range(k)], init=pose, generator=generator, seed=seed,
+                        fps=fps, calibrate=False,
+                    )  # fmt: skip
+                    fitted, report = fit_body_to_frame(
+                        self.skeleton, self.cameras, [frames[t] for t in range(k)], first.angles
+                    )
+                    tracker, pose = self.with_skeleton(fitted), report.poses[0].to(torch.float64)
+                result = tracker.track(
                     sequence, init=pose, generator=generator, seed=seed, fps=fps, out=out, calibrate=False
                 )
                 result.init = "auto"

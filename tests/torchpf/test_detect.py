@@ -168,6 +168,21 @@ def test_body_fitted_to_several_frames_refines_each_frames_pose(case):
     assert float(own.max()) < 0.05 and float(held[4]) > 0.15, (own, held)
 
 
+def test_body_fit_takes_one_starting_pose_per_frame(case):
+    """fit_body_to_frame with a (F, D) pose starts each frame at its own row (what init="auto" does with
+    the poses it tracked): from the true poses the body keeps the walker's scale and each refined pose
+    stays within 5 cm of its truth; a pose of the wrong shape is refused with both shapes named."""
+    from benchmarks.auto_init import joint_error
+    from torchpf.detect import fit_body_to_frame
+
+    fitted, report = fit_body_to_frame(case.skeleton, case.cameras, case.frames[:3], case.angles[:3])
+    assert report.scale == pytest.approx(1.0, abs=0.03)
+    own = joint_error(case, fitted, torch.cat([report.poses, case.angles[3:]]).double())[:3]
+    assert float(own.max()) < 0.05, own
+    with pytest.raises(ValueError, match=r"one per frame \(3, "):
+        fit_body_to_frame(case.skeleton, case.cameras, case.frames[:3], case.angles[:2])
+
+
 def test_init_from_truth_csv_or_error(case, tmp_path):
     from torchpf.io import write_mocap_csv
 
