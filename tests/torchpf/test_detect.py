@@ -183,6 +183,25 @@ def test_body_fit_takes_one_starting_pose_per_frame(case):
         fit_body_to_frame(case.skeleton, case.cameras, case.frames[:3], case.angles[:2])
 
 
+def test_auto_init_can_refit_the_body_at_the_tracked_poses(case):
+    """Tracker.auto_refit_frames: the body is fitted again at the poses tracked over the first frames, and
+    the sequence tracked on that body from frame 0 (opt-in; the measured trade-off is in its comment)."""
+    from benchmarks.auto_init import joint_error
+
+    def run(k):
+        tracker = Tracker(case.skeleton, case.cameras, n_particles=200, fps=30.0, progress=False)
+        tracker.auto_refit_frames = k
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # the uncalibrated-body warning, expected here
+            return tracker.track(case.frames, init="auto", seed=0)
+
+    once, refit = run(0), run(4)
+    assert refit.init == "auto" and len(refit.angles) == len(case.frames)
+    assert not torch.equal(refit.skeleton.radii, once.skeleton.radii)  # another body than frame 0's fit
+    err = joint_error(case, refit.skeleton, refit.angles)
+    assert torch.isfinite(err).all() and float(err[0]) < 0.12  # the bound of test_auto_init_finds_the_pose
+
+
 def test_init_from_truth_csv_or_error(case, tmp_path):
     from torchpf.io import write_mocap_csv
 
