@@ -130,7 +130,7 @@ def fit_body_to_frame(
 
     ``obs`` may also be a list of such frames (consecutive ones, e.g. a sequence's first few): the body is
     fitted to all of them, every frame's pose starting at ``pose`` (or at its own row of a ``(F, D)``
-    ``pose``: ``Tracker.track(init="auto")`` refits at the poses it tracked) and refined on its own
+    ``pose``: with ``Tracker.auto_refit_frames``, ``init="auto"`` refits at the poses it tracked) and refined on its own
     (``report.poses[k]``). ``init="auto"`` fits one frame: with its body fitted so to the first 5, the 11
     noisy foreign clips tracked at 127 mm against 155, but notebook 05's video-segmented walk at 7.7 cm
     against 5.3 (6 seeds; BENCHMARKS.md).
