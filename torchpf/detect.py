@@ -130,10 +130,10 @@ def fit_body_to_frame(
 
     ``obs`` may also be a list of such frames (consecutive ones, e.g. a sequence's first few): the body is
     fitted to all of them, every frame's pose starting at ``pose`` (or at its own row of a ``(F, D)``
-    ``pose``: with ``Tracker.auto_refit_frames``, ``init="auto"`` refits at the poses it tracked) and refined on its own
-    (``report.poses[k]``). ``init="auto"`` fits one frame: with its body fitted so to the first 5, the 11
-    noisy foreign clips tracked at 127 mm against 155, but notebook 05's video-segmented walk at 7.7 cm
-    against 5.3 (6 seeds; BENCHMARKS.md).
+    ``pose``: with ``Tracker.auto_refit_frames``, ``init="auto"`` refits at the poses it tracked) and
+    refined on its own (``report.poses[k]``). ``init="auto"`` fits one frame: with its body fitted so to
+    the first 5, the 11 noisy foreign clips tracked at 127 mm against 155, but notebook 05's
+    video-segmented walk at 7.7 cm against 5.3 (6 seeds; BENCHMARKS.md).
 
     ``scale_sigma`` holds the global scale near 1 (:func:`~torchpf.calibrate.fit_body`): one frame's masks
     are weak evidence of it. On frames 0 and 1 of the foreign renders of the 11 CMU clips (true scale 1), a
