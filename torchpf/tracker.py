@@ -476,11 +476,9 @@ class Tracker(nn.Module):
         x0[0] = pose  # the given pose itself is one of the hypotheses
         return self.skeleton.clamp(x0)
 
-    #: ``init="auto"`` on an uncalibrated body: track this many frames, fit the body again at the tracked
-    #: poses, and track from frame 0 on it (0 or 1, the default: keep the body fitted at the detected pose).
-    #: On the 11 foreign-rendered CMU clips, 8 took clean masks from 58 to 53 mm but noisy ones from 131 to
-    #: 143 mm (the tracked poses it fits at are as noisy as the masks; BENCHMARKS.md), hence opt-in.
-    auto_refit_frames: int = 0
+    #: ``init="auto"`` on an uncalibrated body: frames tracked to fit the body again at the tracked poses
+    #: (:meth:`_auto_refit`; 0 or 1: keep the body fitted at the detected pose)
+    auto_refit_frames: int = 8
 
     def with_skeleton(self, skeleton) -> Tracker:
         """The same tracker (all keywords alike) on another skeleton, e.g. a body fitted to the masks."""
@@ -509,8 +507,9 @@ class Tracker(nn.Module):
                 (:meth:`torchpf.detect.PersonDetector.fit`: visual hull, heading and stride search, pose
                 refined by :func:`torchpf.calibrate.fit_body` on frame 0). When the body looks uncalibrated
                 (:func:`torchpf.detect.looks_uncalibrated`, warned) the track runs on the fitted body,
-                returned as ``result.skeleton``, fitted at the detected pose (with
-                :attr:`auto_refit_frames` set, fitted again at the poses tracked over the first frames).
+                returned as ``result.skeleton``: fitted at the detected pose, then again at the poses
+                tracked over the first :attr:`auto_refit_frames` frames where that explains them better
+                (:meth:`_auto_refit`).
             generator: random generator; default one seeded with ``seed`` (0). A generator on another device
                 than the tracker's seeds a new one there (:func:`torchpf.distributions.as_generator`).
             fps: frame rate of the result (default: from the sequence's times, else 30).
@@ -571,22 +570,8 @@ class Tracker(nn.Module):
         elif isinstance(init, str) and init == "auto":
             pose, fitted = self._auto_init(frames, calibrate)
             if fitted is not None:
+                fitted, pose, _ = self._auto_refit(fitted, pose, frames, seed, fps)
                 tracker = self.with_skeleton(fitted)
-                k = min(int(self.auto_refit_frames), len(frames))
-                if k > 1:
-                    # The body fitted at the detected pose carries its error through the whole track (the
-                    # gap to a truth-initialised track stays constant over 60 frames): fit it again at the
-                    # poses the first k frames tracked, then track from frame 0.
-                    from torchpf.detect import fit_body_to_frame
-
-                    first = tracker.track(
-                        [frames[t] for t in range(k)], init=pose, generator=generator, seed=seed,
-                        fps=fps, calibrate=False,
-                    )  # fmt: skip
-                    fitted, report = fit_body_to_frame(
-                        fitted, self.cameras, [frames[t] for t in range(k)], first.angles
-                    )
-                    tracker, pose = self.with_skeleton(fitted), report.poses[0].to(torch.float64)
                 result = tracker.track(
                     sequence, init=pose, generator=generator, seed=seed, fps=fps, out=out, calibrate=False
                 )
@@ -747,6 +732,35 @@ class Tracker(nn.Module):
         motion = (later.centre - det.centre) * fps / k if later is not None else None
         pose, fitted, _ = detector.fit(frames[0], det=det, motion=motion)
         return pose, fitted if self._calibrates(calibrate, frames[0], init="auto") else None
+
+    def _auto_refit(self, fitted, pose: torch.Tensor, frames, seed: int | None, fps: float | None):
+        """``(body, pose, info)``: the body ``init="auto"`` tracks on, and its pose at frame 0.
+
+        The body fitted at the detected pose carries that pose's error through the whole track (on foreign
+        renders the gap to a truth-initialised track stayed 13-16 mm on every part of 60 frames). So the
+        first ``k = auto_refit_frames`` frames are tracked on it, the body is fitted again at the tracked
+        poses (:func:`torchpf.detect.fit_body_to_frame`, one pose per frame), the same frames are tracked
+        on the refitted body, and it is kept where its log evidence ``log p(z_1..k)`` is the higher: on
+        noisy masks the tracked poses are off by the noisy track's error, and a refit taken always lost
+        12 mm there. On the 11 foreign clips this took ``--init auto`` from 58 to 54 mm on clean masks and
+        131 to 127 mm on noisy ones (BENCHMARKS.md). The passes use ``seed`` (not a caller's generator), so
+        the two bodies are compared on the same random numbers. ``info``: ``frames``, ``log_evidence``
+        (first body, refitted body), ``refit`` (kept)."""
+        k = min(int(self.auto_refit_frames), len(frames))
+        if k < 2:
+            return fitted, pose, {"frames": k, "refit": False}
+        from torchpf.detect import fit_body_to_frame
+
+        first_frames = [frames[t] for t in range(k)]
+        before = self.with_skeleton(fitted).track(
+            first_frames, init=pose, seed=seed, fps=fps, calibrate=False
+        )
+        refit, report = fit_body_to_frame(fitted, self.cameras, first_frames, before.angles)
+        start = report.poses[0].to(torch.float64)
+        after = self.with_skeleton(refit).track(first_frames, init=start, seed=seed, fps=fps, calibrate=False)
+        keep = after.log_evidence > before.log_evidence  # NaN (no evidence) keeps the first body
+        info = {"frames": k, "log_evidence": (before.log_evidence, after.log_evidence), "refit": keep}
+        return (refit, start, info) if keep else (fitted, pose, info)
 
     def _recovery(self, fps: float = 30.0):
         from torchpf.detect import Recovery

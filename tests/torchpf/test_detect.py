@@ -183,23 +183,23 @@ def test_body_fit_takes_one_starting_pose_per_frame(case):
         fit_body_to_frame(case.skeleton, case.cameras, case.frames[:3], case.angles[:2])
 
 
-def test_auto_init_can_refit_the_body_at_the_tracked_poses(case):
-    """Tracker.auto_refit_frames: the body is fitted again at the poses tracked over the first frames, and
-    the sequence tracked on that body from frame 0 (opt-in; the measured trade-off is in its comment)."""
-    from benchmarks.auto_init import joint_error
-
-    def run(k):
-        tracker = Tracker(case.skeleton, case.cameras, n_particles=200, fps=30.0, progress=False)
-        tracker.auto_refit_frames = k
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # the uncalibrated-body warning, expected here
-            return tracker.track(case.frames, init="auto", seed=0)
-
-    once, refit = run(0), run(4)
-    assert refit.init == "auto" and len(refit.angles) == len(case.frames)
-    assert not torch.equal(refit.skeleton.radii, once.skeleton.radii)  # another body than frame 0's fit
-    err = joint_error(case, refit.skeleton, refit.angles)
-    assert torch.isfinite(err).all() and float(err[0]) < 0.12  # the bound of test_auto_init_finds_the_pose
+def test_auto_init_refits_the_body_where_it_explains_the_first_frames_better(case):
+    """Tracker._auto_refit: the body is fitted again at the poses tracked over the first frames and kept
+    only where its log evidence over those frames is the higher; 0 frames keeps the first fit."""
+    tracker = Tracker(case.skeleton, case.cameras, n_particles=100, fps=30.0, progress=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the uncalibrated-body warning, expected here
+        pose, fitted = tracker._auto_init(case.frames)
+        body, start, info = tracker._auto_refit(fitted, pose, case.frames, 0, 30.0)
+    assert info["frames"] == tracker.auto_refit_frames == 8
+    before, after = info["log_evidence"]
+    assert info["refit"] == (after > before)
+    if info["refit"]:
+        assert body is not fitted and not torch.equal(start, pose)
+    else:
+        assert body is fitted and start is pose
+    tracker.auto_refit_frames = 0
+    assert tracker._auto_refit(fitted, pose, case.frames, 0, 30.0)[:2] == (fitted, pose)
 
 
 def test_init_from_truth_csv_or_error(case, tmp_path):
