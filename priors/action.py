@@ -276,6 +276,7 @@ class ActionModel(nn.Module):
         )
         self.register_buffer("explained_variance", ev.to(torch.float64))
         self.register_buffer("explained_variance_ratio", evr.to(torch.float64))
+        self._residual_variance = self._discarded_variance(ev, evr, P)
         self.training_data = _check_training(training, D, K)
 
     # ------------------------------------------------------------------------------------------ sizes
@@ -349,12 +350,17 @@ class ActionModel(nn.Module):
         log_p, within = self._match(coords)
         return (log_p.exp() * within).sum(-1)
 
+    def _soft_exponent(self, coords: Tensor) -> Tensor:
+        """``-½ ||(φ̃ - ĝ_j) / (n_sigma σ_j)||²`` ``(..., K)`` for aSpace coords ``(..., D)``: the soft prior's
+        Gaussian around each mean posture, in log space and without its normaliser."""
+        z = (coords.unsqueeze(-2) - self.mean_performance.to(coords)) / (self.n_sigma * self.std.to(coords))
+        return -0.5 * z.square().sum(-1)
+
     def _soft(self, coords: Tensor) -> tuple[Tensor, Tensor]:
         """``log p(j | φ̃)`` and the soft acceptance ``exp(-½ ||(φ̃ - ĝ_j) / (n_sigma σ_j)||²)``, each
         ``(..., K)``."""
         log_p, _ = self._match(coords)
-        z = (coords.unsqueeze(-2) - self.mean_performance.to(coords)) / (self.n_sigma * self.std.to(coords))
-        return log_p, torch.exp(-0.5 * z.square().sum(-1))
+        return log_p, self._soft_exponent(coords).exp()
 
     def soft_accept_probability(self, theta: Tensor) -> Tensor:
         """The soft prior: ``Σ_j p(j | φ̃) exp(-½ Σ_d ((φ̃_d - ĝ_{j,d}) / (n_sigma σ_{j,d}))²)`` ``(...)`` in
@@ -370,16 +376,20 @@ class ActionModel(nn.Module):
         matched mean posture scores about ``-r² / 2``."""
         coords = self.project(theta)
         log_p, _ = self._match(coords)
-        z = (coords.unsqueeze(-2) - self.mean_performance.to(coords)) / (self.n_sigma * self.std.to(coords))
-        return torch.logsumexp(log_p - 0.5 * z.square().sum(-1), -1)
+        return torch.logsumexp(log_p + self._soft_exponent(coords), -1)
 
     @property
     def residual_variance(self) -> float | None:
         """Per-dimension variance of the training postures off the aSpace (rad²): the PCA's discarded
         variance over the ``P - D`` discarded directions (Tipping & Bishop 1999, eq. 8); ``None`` where the
-        model does not store its explained variances or keeps every direction."""
-        ev, ratio = self.explained_variance, self.explained_variance_ratio
-        P, D = self.components.shape[1], self.components.shape[0]
+        model does not store its explained variances or keeps every direction. Computed once, on
+        construction (:meth:`log_density` reads it every frame of a bank)."""
+        return self._residual_variance
+
+    @staticmethod
+    def _discarded_variance(ev: Tensor, ratio: Tensor, P: int) -> float | None:
+        """:attr:`residual_variance` from the explained variances ``ev`` and their ratios ``ratio``."""
+        D = len(ev)
         if P <= D or not bool((ev > 0).all() and (ratio > 0).all()):
             return None
         total = float((ev / ratio).mean())  # each component's variance over its share: the total variance
@@ -402,9 +412,8 @@ class ActionModel(nn.Module):
         U = self.components.to(x)
         c = d @ U.transpose(0, 1)
         D = self.n_components
-        s = self.n_sigma * self.std.to(x)  # (K, D)
-        z = (c.unsqueeze(-2) - self.mean_performance.to(x)) / s
-        log_k = -0.5 * z.square().sum(-1) - s.log().sum(-1) - 0.5 * D * math.log(2 * math.pi)
+        log_norm = (self.n_sigma * self.std.to(x)).log().sum(-1) + 0.5 * D * math.log(2 * math.pi)  # (K,)
+        log_k = self._soft_exponent(c) - log_norm
         out = torch.logsumexp(log_k, -1) - math.log(self.n_postures)
         var = self.residual_variance
         if var is not None:
@@ -825,13 +834,16 @@ class ActionSubspace:
                 "ActionSubspace: the action models must share one DOF order (ActionModel.for_dof_names)"
             )
         self.choice = choice
-        #: ``(..., K)`` bool, the poses that move in an aSpace
-        self.active = choice >= 0
         self.n_dofs = len(names)
         sizes = [m.n_components for m in self.models]
         self._slices = [
             slice(self.n_dofs + sum(sizes[:i]), self.n_dofs + sum(sizes[: i + 1])) for i in range(len(sizes))
         ]
+
+    @property
+    def active(self) -> Tensor:
+        """``(..., K)`` bool, the poses that move in an aSpace."""
+        return self.choice >= 0
 
     @classmethod
     def around(cls, models: Sequence[ActionModel], x: Tensor, radius: float | None) -> ActionSubspace:

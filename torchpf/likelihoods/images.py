@@ -186,12 +186,6 @@ def _foreground(obs: Silhouettes, n: int, S: int, like: torch.Tensor) -> tuple[t
     return _per_camera(fg.to(like), S, 2), _per_camera(ok.to(like.device), S, 0)
 
 
-def _lookup(image: torch.Tensor, uv: torch.Tensor, mode: str = "bilinear") -> torch.Tensor:
-    """Look-up of an (H, W) image (or (S, H, W), one per sequence) at (B, ..., 2) pixel coords (u, v),
-    "bilinear" or "nearest"; 0 outside."""
-    return _sample(image, uv, mode, "zeros")
-
-
 @LIKELIHOODS.register("silhouette")
 class SilhouetteLikelihood(ImageLikelihood):
     """Fontmarty et al. eq. 2: ``log p = -sum_l D_l^2 / (2 sigma^2)``, ``D_l = (1/N_p) sum_i (1 - I_l(p_i))``
@@ -257,7 +251,7 @@ class SilhouetteLikelihood(ImageLikelihood):
         pts, w = self._model_points(
             self._caps2d(body, S, obs.height, obs.width, obs.offset)
         )  # (S, V, N, P, 2)
-        inside = _lookup(obs.blurred(self.blur), pts, self.interpolation)
+        inside = _sample(obs.blurred(self.blur), pts, self.interpolation)
         return _pose_major(1.0 - (w * inside).sum(-1) / w.sum(-1).clamp_min(1e-9))
 
     def _log_lik(self, body, obs: Silhouettes):
@@ -459,7 +453,7 @@ class OverlapLikelihood(SilhouetteLikelihood):
         pts, w = self._model_points(
             self._caps2d(body, S, obs.height, obs.width, obs.offset)
         )  # (S, V, N, P, 2)
-        inter = (w * _lookup(obs.blurred(self.blur), pts, self.interpolation)).sum(-1)
+        inter = (w * _sample(obs.blurred(self.blur), pts, self.interpolation)).sum(-1)
         union = w.sum(-1) + _per_camera(obs.area().to(w), S, 0) - inter
         return _pose_major(inter / union.clamp_min(1e-9))
 
