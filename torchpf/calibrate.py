@@ -49,44 +49,13 @@ import torch
 from torchpf.camera import CameraRig
 from torchpf.devices import on_cpu
 from torchpf.geometry import project_capsules, sample_in_capsules
-from torchpf.kinematics.tree import body_partition, children_of
+from torchpf.kinematics.symmetry import mirror_limbs
 from torchpf.observations import Silhouettes
 
 __all__ = ["CalibrationReport", "bone_groups", "fit_body", "overlay_image"]
 
 
 # ---------------------------------------------------------------------------------------------- groups
-def _shape(j: int, kids) -> str:
-    """Canonical string of the subtree's topology (children sorted), the same for a limb and its mirror."""
-    return "(" + "".join(sorted(_shape(c, kids) for c in kids[j])) + ")"
-
-
-def _canonical(j: int, kids, rest: torch.Tensor) -> list[int]:
-    """The joints of the subtree of ``j`` depth-first, siblings ordered by shape then bone length: an order
-    in which a limb and its mirror list corresponding joints at the same positions."""
-    order = [j]
-    key = lambda c: (_shape(c, kids), round(float((rest[c] - rest[j]).norm()), 3))  # noqa: E731
-    for c in sorted(kids[j], key=key):
-        order += _canonical(c, kids, rest)
-    return order
-
-
-def _mirrors(a: list[int], b: list[int], rest: torch.Tensor, kids, tol: float) -> bool:
-    """Whether limbs ``a`` and ``b`` (canonical joint orders) are mirror images in the rest pose: ``a``
-    reflected across the plane half-way between the limbs' centroids lands on ``b``."""
-    if len(a) != len(b) or _shape(a[0], kids) != _shape(b[0], kids):
-        return False
-    pa, pb = rest[a], rest[b]
-    size = float((pa - pa[0]).norm(dim=-1).max()) + 1e-6
-    normal = pb.mean(0) - pa.mean(0)
-    if float(normal.norm()) < 1e-6:
-        return False
-    normal = normal / normal.norm()
-    mid = 0.5 * (pa.mean(0) + pb.mean(0))
-    reflected = pa - 2 * ((pa - mid) @ normal)[:, None] * normal
-    return float((reflected - pb).norm(dim=-1).max()) <= tol * size
-
-
 def bone_groups(skeleton, *, tol: float = 0.1) -> list[list[int]]:
     """Bones that share a radius (and a length factor): torso bones alone, mirror limbs tied bone by bone.
 
@@ -98,40 +67,16 @@ def bone_groups(skeleton, *, tol: float = 0.1) -> list[list[int]]:
         Lists of bone indices (into ``skeleton.bones``), every bone exactly once, in order of first bone.
     """
     tree = skeleton.tree
-    parents = tree.parents.tolist()
-    kids = children_of(parents)
-    rest = skeleton.fk(torch.zeros(len(skeleton.dof_names), dtype=torch.float64))
     bone_of = {int(c): k for k, (_, c) in enumerate(tree.bones.tolist())}
-    limbs = body_partition(tree, per_limb=True, joints=True)[1:]
-    # a limb's root is its joint whose parent is outside it (on the torso)
-    limb_orders = []
-    for limb in limbs:
-        members = set(limb)
-        roots = [j for j in limb if parents[j] not in members]
-        limb_orders.append([j for r in roots for j in _canonical(r, kids, rest)])
     group_of: dict[int, int] = {}
     groups: list[list[int]] = []
-    paired: set[int] = set()
-    for i, a in enumerate(limb_orders):
-        if i in paired:
-            continue
-        mate = next(
-            (
-                k
-                for k in range(i + 1, len(limb_orders))
-                if k not in paired and _mirrors(a, limb_orders[k], rest, kids, tol)
-            ),
-            None,
-        )
-        paired.add(i)
-        if mate is not None:
-            paired.add(mate)
-        for pos, j in enumerate(a):
+    for joints, mirror, _ in mirror_limbs(skeleton, tol=tol):
+        for pos, j in enumerate(joints):
             if j not in bone_of:
                 continue
             members = [bone_of[j]]
-            if mate is not None and limb_orders[mate][pos] in bone_of:
-                members.append(bone_of[limb_orders[mate][pos]])
+            if mirror is not None and mirror[pos] in bone_of:
+                members.append(bone_of[mirror[pos]])
             for m in members:
                 group_of[m] = len(groups)
             groups.append(members)

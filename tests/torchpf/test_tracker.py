@@ -168,6 +168,31 @@ def test_public_name():
     assert torchpf.Tracker is Tracker and "Tracker" in dir(torchpf)
 
 
+def test_hybrid_puts_swapped_legs_back(scene):
+    """Started with the legs exchanged (each foot ~0.5 m off), the hybrid's leg-swap candidate puts them back
+    on the first frame; without it the track keeps them swapped for several frames."""
+    from torchpf.kinematics.symmetry import limb_swaps
+
+    skel, cams, seq, angles = scene
+    legs = limb_swaps(skel)[0]
+    feet = [skel.joint_names.index(n) for n in ("LeftFoot", "RightFoot")]
+    frames = [seq.frame(t) for t in range(3)]
+
+    def feet_error(**filter_options):
+        tracker = Tracker(
+            skel, cams, n_particles=500, fps=15.0, progress=False, filter_options=filter_options
+        )
+        result = tracker.track(frames, init=legs(angles[0]), seed=0)
+        return (skel.fk(result.angles)[:, feet] - skel.fk(angles[:3])[:, feet]).norm(dim=-1).mean(-1), result
+
+    start = float((skel.fk(legs(angles[0]))[feet] - skel.fk(angles[0])[feet]).norm(dim=-1).mean())
+    assert start > 0.4
+    with_swaps, result = feet_error()
+    without, _ = feet_error(swaps=())
+    assert bool(result.stats["refine_swapped"][0]) and (with_swaps < 0.06).all()
+    assert (without > 0.3).all()
+
+
 def test_named_prior_gets_the_frame_rate(scene):
     from priors.diffusion import structural_sigma
 
@@ -176,6 +201,26 @@ def test_named_prior_gets_the_frame_rate(scene):
         skel, cams, dynamics="random_walk", fps=20.0, filter="sir", n_particles=10, progress=False
     )
     torch.testing.assert_close(torch.as_tensor(tracker.dynamics.sigma), structural_sigma(skel, fps=20.0))
+
+
+def test_named_prior_without_a_rate_takes_the_sequences(scene):
+    """fps=None: a sequence with times (15 Hz here) gets the prior built for its rate, the same track as
+    fps=15 given; no warning about a missing rate. An explicit other rate is honoured."""
+    import warnings
+
+    skel, cams, seq, _ = scene
+
+    def run(**options):
+        tracker = Tracker(
+            skel, cams, likelihood="silhouette", filter="sir", n_particles=40, progress=False, **options
+        )
+        return tracker.track(seq, seed=0).angles
+
+    with warnings.catch_warnings():
+        warnings.filterwarnings("error", message=".*no fps given")
+        unset = run()
+    torch.testing.assert_close(unset, run(fps=15.0), rtol=0, atol=0)
+    assert not torch.equal(unset, run(fps=5.0))
 
 
 def test_auto_temperature_sets_the_first_frame_survival_rate(scene):

@@ -28,6 +28,11 @@ the two-sided distance-transform silhouette cue). How the refined poses re-enter
   onto ``K`` poses); with ``refine_prior=False`` it climbs the cue alone and the prior term of the ratio
   rejects the move (the refiner moves DOFs that the silhouettes leave free), so the refinement is lost.
 
+**Swapped limbs.** ``swaps`` (``Tracker`` gives the mirror limbs of the skeleton,
+:func:`~torchpf.kinematics.symmetry.limb_swaps`) adds the weighted mean with a pair of mirror limbs exchanged
+to the refined candidates; taken only where the filter's likelihood prefers it by ``swap_margin`` nats, it
+puts a track that took the left leg for the right one back, and the set with it.
+
 **On an action's manifold.** A motion prior or importance distribution with a ``refine_space(x)`` method
 (an action model's: :class:`priors.action.ActionConstrained`, a bank of them, or
 :class:`priors.action.ActionProposal`) gives the coordinates the refiner moves each
@@ -58,6 +63,7 @@ from __future__ import annotations
 from typing import Any
 
 import torch
+from torch import nn
 
 from torchpf.filters.annealed import AnnealedParticleFilter
 from torchpf.filters.state import ParticleState, gather_particles
@@ -82,12 +88,23 @@ class HybridParticleFilter(AnnealedParticleFilter):
             refined pose back towards the previous frame, 101 -> 234 mm on the synthetic walk).
         refine_space: refine in the coordinates the motion prior's (or proposal's) ``refine_space(x)``
             gives (default True: an action model's aSpace, module docstring); False: always in the DOFs.
+        swaps: moves ``x (..., D) -> x'`` tried as refinement candidates in ``"estimate"`` and
+            ``"recentre"`` modes: the weighted mean moved by each (e.g. the legs exchanged,
+            :func:`~torchpf.kinematics.symmetry.limb_swaps`) takes one of the ``K`` slots after the mean
+            (``K - 2`` at most: one particle of highest weight is always refined). Where such a candidate
+            becomes the estimate, the whole set takes the same move before it is recentred. Silhouettes
+            cannot tell a walker's legs apart, and a track that takes the swapped pair keeps it; the move
+            lets it go back (BENCHMARKS.md, "Swapped limbs").
+        swap_margin: nats by which the filter's likelihood must prefer a refined swapped candidate to the
+            best refined unswapped one (besides the refiner's objective preferring it): on noisy masks the
+            two are often a tie, and a track that flips on ties swaps its arms for good.
         **options: the APF's keywords (``n_particles`` per layer, ``betas``, ``alphas``, ...).
 
     ``info`` adds ``refine_gain (...)``: the refinement's decrease of the refiner's objective (nats of its
     cue), averaged over the ``K``; with a motion prior's space, ``refine_on_manifold (...)``: the share of
-    the ``K`` it moved on the action's manifold; in ``"particles"`` mode ``refined_weight (...)``: the
-    share of the posterior's weight that the refined particles carry.
+    the ``K`` it moved on the action's manifold; with ``swaps``, ``refine_swapped (...)``: 1 where a moved
+    candidate became the estimate; in ``"particles"`` mode ``refined_weight (...)``: the share of the
+    posterior's weight that the refined particles carry.
     """
 
     needs_refiner = True
@@ -103,6 +120,8 @@ class HybridParticleFilter(AnnealedParticleFilter):
         refine_mode: str = "recentre",
         refine_prior: bool = False,
         refine_space: bool = True,
+        swaps: Any = (),
+        swap_margin: float = 3.0,
         **options: Any,
     ):
         super().__init__(dynamics, likelihood, proposal, **options)
@@ -117,6 +136,10 @@ class HybridParticleFilter(AnnealedParticleFilter):
         self.refine_mode = refine_mode
         self.refine_prior = bool(refine_prior)
         self.refine_space = bool(refine_space)
+        swaps = list(swaps or ())
+        # modules (LimbSwap) move with the filter; any other callable is kept as it is
+        self.swaps = nn.ModuleList(swaps) if swaps and all(isinstance(m, nn.Module) for m in swaps) else swaps
+        self.swap_margin = float(swap_margin)
 
     # ------------------------------------------------------------------ equal likelihood budget
     @classmethod
@@ -128,8 +151,12 @@ class HybridParticleFilter(AnnealedParticleFilter):
         k = int(options.get("n_refine", 4))
         if refiner is None:
             return 0
-        # the weight ratio (2 K), or the check of the refined estimate against the mean (2)
-        extra = 2 * k if options.get("refine_mode", "recentre") == "particles" else 2
+        # the weight ratio (2 K), or the check of the refined estimate against the mean (2, and 1 more for
+        # the best unswapped candidate where swaps are tried)
+        if options.get("refine_mode", "recentre") == "particles":
+            extra = 2 * k
+        else:
+            extra = 2 + (1 if options.get("swaps") and k > 2 else 0)
         return refiner.evaluations(k) + extra
 
     @staticmethod
@@ -166,6 +193,7 @@ class HybridParticleFilter(AnnealedParticleFilter):
             "refiner": self.refiner,
             "n_refine": self.n_refine,
             "refine_mode": self.refine_mode,
+            "swaps": self.swaps,
         }
 
     @property
@@ -184,7 +212,9 @@ class HybridParticleFilter(AnnealedParticleFilter):
             state, obs, generator
         )
         estimate = self.refine_mode in ("estimate", "recentre")
-        k = min(self.n_refine - estimate, x.shape[-2])  # "estimate" refines the mean and K - 1 particles
+        # "estimate" refines the mean, the mean moved by each swap, and the particles of highest weight
+        swaps = self.swaps[: max(0, self.n_refine - 2)] if estimate else []
+        k = min(self.n_refine - estimate - len(swaps), x.shape[-2])
         top = log_w.topk(k, dim=-1).indices  # (..., K)
         xk = gather_particles(x, top)
         prev = gather_particles(x_prev, top)
@@ -194,8 +224,10 @@ class HybridParticleFilter(AnnealedParticleFilter):
             # the weighted mean as a candidate (ParticleState.mean: zero-weight NaN particles do not count)
             mean = state.replace(particles=x, log_weights=log_w).mean().unsqueeze(-2)
             mean_prev = state.replace(particles=x_prev, log_weights=log_w).mean().unsqueeze(-2)
-            xk, prev = torch.cat([mean, xk], -2), torch.cat([mean_prev, prev], -2)
-            extras_k = {key: torch.cat([v.narrow(dim, 0, 1), v], dim) for key, v in extras_k.items()}
+            n = 1 + len(swaps)
+            xk = torch.cat([mean, *(swap(mean) for swap in swaps), xk], -2)
+            prev = torch.cat([mean_prev.expand(*mean_prev.shape[:-2], n, -1), prev], -2)
+            extras_k = {key: torch.cat([v.narrow(dim, 0, 1)] * n + [v], dim) for key, v in extras_k.items()}
         log_prior = None
         if self.refine_prior:
 
@@ -213,21 +245,49 @@ class HybridParticleFilter(AnnealedParticleFilter):
             refined = self.refiner(xk, obs, log_prior=log_prior)
         info["refine_gain"] = (refined.loss_before - refined.loss).mean(-1)
         if estimate:  # the candidate the refinement left best (the mean where every objective is NaN)
-            best = torch.nan_to_num(refined.loss, nan=torch.inf).argmin(-1, keepdim=True)
-            chosen = gather_particles(refined.x, best)
+            loss = torch.nan_to_num(refined.loss, nan=torch.inf)
+            best = loss.argmin(-1, keepdim=True)
             # The filter's own likelihood arbitrates: the refiner's cue is a surrogate that a mask defect can
             # mislead (a stray blob, a limb missing from one camera), so a refined estimate the likelihood
             # scores below the plain mean is not taken.
-            both = self._loglik(self.likelihood, torch.cat([xk[..., :1, :], chosen], -2), obs)
+            if swaps:
+                # a swapped candidate must also beat the best unswapped one by `swap_margin` nats: where the
+                # masks cannot tell the two apart, the track keeps its limbs instead of flipping them
+                n = 1 + len(swaps)
+                plain = torch.cat(
+                    [loss[..., :1], torch.full_like(loss[..., 1:n], torch.inf), loss[..., n:]], -1
+                )
+                plain = plain.argmin(-1, keepdim=True)
+                pair = gather_particles(refined.x, torch.cat([plain, best], -1))
+                ll = self._loglik(self.likelihood, torch.cat([xk[..., :1, :], pair], -2), obs)
+                flip = (best.squeeze(-1) != plain.squeeze(-1)) & (ll[..., 2] >= ll[..., 1] + self.swap_margin)
+                best = torch.where(flip.unsqueeze(-1), best, plain)
+                both = torch.stack([ll[..., 0], torch.where(flip, ll[..., 2], ll[..., 1])], -1)
+            else:
+                both = self._loglik(
+                    self.likelihood, torch.cat([xk[..., :1, :], gather_particles(refined.x, best)], -2), obs
+                )
+            chosen = gather_particles(refined.x, best)
             accept = both[..., 1] >= both[..., 0]
             info["refine_accepted"] = accept
             info["estimate"] = torch.where(accept.unsqueeze(-1), chosen.squeeze(-2), xk[..., 0, :])
             # kept for the lost-track check (torchpf.detect.Recovery), which would otherwise score it again
             info["estimate_log_likelihood"] = torch.where(accept, both[..., 1], both[..., 0])
+            # where a swapped mean became the estimate, the set is swapped too, then follows it
+            start, moved = xk[..., 0, :], x
+            if swaps:
+                swapped = torch.zeros_like(accept)
+                for c, swap in enumerate(swaps, start=1):
+                    use = accept & (best.squeeze(-1) == c)
+                    start = torch.where(use.unsqueeze(-1), xk[..., c, :], start)
+                    if self.refine_mode == "recentre":
+                        moved = torch.where(use.unsqueeze(-1).unsqueeze(-1), swap(x), moved)
+                    swapped = swapped | use
+                info["refine_swapped"] = swapped
             if self.refine_mode == "recentre":  # the whole set follows its refined estimate
-                shift = info["estimate"] - xk[..., 0, :]
+                shift = info["estimate"] - start
                 shift = torch.where(torch.isfinite(shift), shift, 0.0).unsqueeze(-2)
-                x = self.refiner.clamp(x + shift)
+                x = self.refiner.clamp(moved + shift)
         else:
             extras = {key: torch.cat([v, v], dim) for key, v in extras_k.items()}
             both = torch.cat([xk, refined.x], -2)

@@ -6,6 +6,8 @@
 * :mod:`torchpf.kinematics.urdf`: URDF reading (text, pytorch-kinematics chain, flattened frames, capsule
   radii) and writing (:func:`~torchpf.kinematics.urdf.build_urdf`).
 * :mod:`torchpf.kinematics.jacobian`: the tree Jacobian of FK from the DOF axes (and the autograd one).
+* :mod:`torchpf.kinematics.symmetry`: mirror-image limbs from the tree and the rest pose, and the DOF map
+  that exchanges them (:func:`~torchpf.kinematics.symmetry.limb_swaps`).
 * :mod:`torchpf.kinematics.aba`: the articulated-body solve of ``(JᵀWJ + diag) δ = JᵀW r`` (Featherstone),
   eager tensors or the fused numba kernel (:mod:`torchpf.kinematics._aba_cpu`).
 

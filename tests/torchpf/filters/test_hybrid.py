@@ -69,6 +69,8 @@ def test_budget_counts_layers_and_refinement():
     assert built.likelihood_evaluations == 3 * n + refine <= 500
     est = kind.for_budget(500, refiner=refiner, n_refine=4)  # "estimate" mode: no weight ratio
     assert est == (500 - 4 * 31 - 2) // 3  # the refiner plus the likelihood check of the estimate
+    # with swaps, one more: the best unswapped candidate's score
+    assert kind.for_budget(500, refiner=refiner, n_refine=4, swaps=[lambda x: x]) == (500 - 4 * 31 - 3) // 3
 
 
 def test_a_refiner_that_does_nothing_gives_the_apf(setup):
@@ -147,6 +149,56 @@ def test_recentre_mode_shifts_the_set_to_the_refined_estimate(setup):
     torch.testing.assert_close(out.particles, ref.particles + shift.unsqueeze(-2))
     torch.testing.assert_close(out.log_weights, ref.log_weights)
     torch.testing.assert_close(out.mean(), out.info["estimate"])
+
+
+@pytest.mark.parametrize("mode,margin", [("estimate", 0.0), ("recentre", 0.0), ("recentre", 0.5)])
+def test_swap_candidates_and_the_set_that_follows_a_swap(setup, mode, margin):
+    """A move (here x -> x / 2, any map will do) adds the moved mean as a candidate after the mean. It
+    becomes the estimate where the refinement leaves it best and the likelihood scores it ``swap_margin``
+    above the best unmoved candidate (and above the mean); "recentre" then moves the whole set by it, then by
+    the refinement's correction."""
+    model, zs, x0 = setup
+
+    def halve(x):
+        return x / 2
+
+    apf, hybrid = _filters(
+        model, ShiftRefiner(0.05), refine_mode=mode, n_refine=4, swaps=[halve], swap_margin=margin
+    )
+    sh = hybrid.init(x0)
+    lik = model.likelihood()
+    seen = set()
+    for t, z in enumerate(zs):
+        ref = apf.step(sh, z, torch.Generator().manual_seed(10 + t))  # the same layers from the same state
+        out = hybrid.step(sh, z, torch.Generator().manual_seed(10 + t))
+        mean = ref.mean()
+        top = ref.log_weights.topk(2, -1).indices  # K = 4: the mean, its move, 2 particles
+        particles = ref.particles.gather(-2, top.unsqueeze(-1).expand(-1, -1, 4))
+        cands = torch.cat([mean.unsqueeze(-2), halve(mean).unsqueeze(-2), particles], -2)
+        objective = cands.square().sum(-1)  # the ShiftRefiner's, before its move
+        refined = cands + 0.05
+        rows = torch.arange(2)
+        best = objective.argmin(-1)
+        plain = objective.index_fill(-1, torch.tensor([1]), float("inf")).argmin(-1)
+        ll_best = lik(refined[rows, best].unsqueeze(-2), z)[:, 0]
+        ll_plain = lik(refined[rows, plain].unsqueeze(-2), z)[:, 0]
+        flip = (best == 1) & (ll_best >= ll_plain + margin)
+        chosen = torch.where(flip.unsqueeze(-1), refined[rows, best], refined[rows, plain])
+        accept = lik(chosen.unsqueeze(-2), z)[:, 0] >= lik(mean.unsqueeze(-2), z)[:, 0]
+        estimate = torch.where(accept.unsqueeze(-1), chosen, mean)
+        torch.testing.assert_close(out.info["estimate"], estimate)
+        swapped = accept & flip
+        assert torch.equal(out.info["refine_swapped"], swapped)
+        if mode == "recentre":
+            start = torch.where(swapped.unsqueeze(-1), halve(mean), mean)
+            moved = torch.where(swapped[:, None, None], halve(ref.particles), ref.particles)
+            torch.testing.assert_close(out.particles, moved + (estimate - start).unsqueeze(-2))
+        else:
+            torch.testing.assert_close(out.particles, ref.particles)
+        seen.update("swapped" for _ in range(int(swapped.sum())))
+        seen.update("refused by the margin" for _ in range(int(((best == 1) & ~flip).sum())))
+        sh = out
+    assert ("swapped" if margin == 0 else "refused by the margin") in seen  # the branch this case is for
 
 
 def test_bad_arguments():
