@@ -10,7 +10,8 @@ so the rows are the per-frame step) and, in one process, the script times per fr
   ``dual_silhouette``, structural random walk, recovery on), the whole :meth:`~torchpf.Tracker.track`
   loop (masks read from disk included); ``apf, no recovery``: the same without the lost-track detector;
 * ``hybrid``: ``filter="hybrid"``, the default of ``track`` (APF layers, then projected Adam on ``K = 4``
-  poses); ``hybrid, no recovery``: the same without the lost-track detector (its periodic visual hull);
+  poses, limb swaps tried); ``hybrid, no recovery``: the same without the lost-track detector (its periodic
+  visual hull); ``hybrid, no limb swaps``: without the swapped candidates (``filter_options={"swaps": ()}``);
 * ``refine``: :class:`~torchpf.refine.Refiner` alone (the hybrid's default: 20 steps, ``K = 4`` poses near
   the truth; ``--refine-steps 10,15`` adds rows with other step counts, for the hybrid too, at the same
   budget) on each frame's fresh observation (its per-frame caches, the despeckled masks and distance
@@ -120,6 +121,9 @@ def measure(
         rows["hybrid"] = _track_row(tracker(filter="hybrid"), seq.path, T, warmup)
         rows["hybrid, no recovery"] = _track_row(
             tracker(filter="hybrid", recovery=False), seq.path, T, warmup
+        )
+        rows["hybrid, no limb swaps"] = _track_row(
+            tracker(filter="hybrid", filter_options={"swaps": ()}), seq.path, T, warmup
         )
         for steps in refine_steps:  # the same budget: fewer steps leave the APF layers more particles
             options = {"filter_options": {"refine_options": {"steps": steps}}}

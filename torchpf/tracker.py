@@ -233,7 +233,7 @@ class Tracker(nn.Module):
             evaluations per frame the hybrid's error was 2.5x lower on clean masks (BENCHMARKS.md, "Hybrid
             search"); the refinement needs the silhouettes its cue reads. The hybrid also tries the mirror
             limbs of the skeleton exchanged (``swaps``, :func:`torchpf.kinematics.symmetry.limb_swaps`, from
-            the tree and the rest pose): on the same renders, clean masks, 47 -> 44 mm and 8 -> 1 % of frames
+            the tree and the rest pose): on the same renders, clean masks, 47 -> 43 mm and 8 -> 1 % of frames
             failed, the runs' lost arms put back (BENCHMARKS.md, "Swapped limbs").
         n_particles: likelihood evaluations per frame (the equal-budget N of Fontmarty's protocol).
         filter_options: extra keywords of the filter (e.g. ``{"betas": "adaptive"}`` for the APF;
@@ -305,7 +305,7 @@ class Tracker(nn.Module):
                 self.likelihood, 1.0 if temperature == "auto" else temperature
             )
         self.temperature = temperature
-        # a named prior that takes a rate but got none: track() rebuilds it for the sequence's (or warns)
+        # a named prior that takes a rate but got none: track() builds it for the sequence's (or warns)
         self._rate_unknown = False
         if isinstance(dynamics, str):
             options = dict(dynamics_options or {})
@@ -499,11 +499,22 @@ class Tracker(nn.Module):
     #: (:meth:`_auto_refit`; 0 or 1: keep the body fitted at the detected pose)
     auto_refit_frames: int = 8
 
-    def with_skeleton(self, skeleton, **changes: Any) -> Tracker:
-        """The same tracker (all keywords alike but ``changes``) on another skeleton, e.g. a body fitted to
-        the masks. It runs where this one runs now (:meth:`to` included)."""
-        options = {**self._options, "device": self.device, "dtype": self.dtype, **changes}
+    def with_skeleton(self, skeleton) -> Tracker:
+        """The same tracker (all keywords alike) on another skeleton, e.g. a body fitted to the masks. It runs
+        where this one runs now (:meth:`to` included)."""
+        options = {**self._options, "device": self.device, "dtype": self.dtype}
         return type(self)(skeleton, self.cameras, **options)
+
+    def _prior_for_rate(self, fps: float) -> None:
+        """Build the named motion prior, and the filter around it, for frame rate ``fps``: a tracker made
+        without ``fps`` learns the rate from the sequence (the likelihood and its parameters stay)."""
+        if getattr(self, "_rate_built", None) == fps:
+            return
+        options = {**dict(self._options["dynamics_options"] or {}), "fps": fps}
+        self.dynamics = make_dynamics(self._options["dynamics"], self.skeleton, **options)
+        self.filter = self._build_filter()
+        self.to(self.device)
+        self._rate_built = fps
 
     def track(
         self,
@@ -580,16 +591,14 @@ class Tracker(nn.Module):
         else:
             frames = list(sequence)
         if self._rate_unknown:
-            if fps is not None:  # the named prior's per-frame stds need a rate: build it for this one
-                again = sequence if isinstance(sequence, SequenceData) else frames
-                return self.with_skeleton(self.skeleton, fps=fps).track(
-                    again, init=init, generator=generator, seed=seed, fps=fps, out=out, calibrate=calibrate
+            if fps is not None:
+                self._prior_for_rate(float(fps))
+            else:
+                warnings.warn(
+                    f"Tracker: no fps given and {where} has no times; the {self._options['dynamics']!r} "
+                    "prior's per-frame stds assume its default rate (pass fps=)",
+                    stacklevel=2,
                 )
-            warnings.warn(
-                f"Tracker: no fps given and {where} has no times; the {self._options['dynamics']!r} prior's "
-                "per-frame stds assume its default rate (pass fps=)",
-                stacklevel=2,
-            )
         if not len(frames):
             raise ValueError("the sequence has no frames")
         how = "pose"

@@ -121,7 +121,7 @@ class HybridParticleFilter(AnnealedParticleFilter):
         refine_prior: bool = False,
         refine_space: bool = True,
         swaps: Any = (),
-        swap_margin: float = 3.0,
+        swap_margin: float = 1.0,
         **options: Any,
     ):
         super().__init__(dynamics, likelihood, proposal, **options)
