@@ -4,8 +4,8 @@ Silhouettes do not tell the left leg from the right one: a walker seen with the 
 where the right one is, mirrored) casts nearly the same masks, and a tracker that takes the wrong pair keeps
 it for a stride or more. In the lost tracks of foreign renders with mask defects that was the failure
 (BENCHMARKS.md, "Swapped limbs"): each foot 0.4-0.9 m off its own truth and within 0.05-0.15 m of the other
-foot's (CMU 07_01, 35_02, 35_24, 16_21), and in runs the arms. :func:`limb_swaps` gives the swap of each
-mirror pair as a map on the DOFs, so that a filter can try the swapped hypothesis
+foot's (CMU 07_01, 35_02, 35_24, 16_21), and in 35_02 later the hands. :func:`limb_swaps` gives the swap
+of each mirror pair as a map on the DOFs, so that a filter can try the swapped hypothesis
 (:class:`~torchpf.filters.HybridParticleFilter`'s ``swaps``).
 
 Everything comes from the tree and the rest pose, never from joint names:
