@@ -496,8 +496,9 @@ class Tracker(nn.Module):
         return self.skeleton.clamp(x0)
 
     #: ``init="auto"`` on an uncalibrated body: frames tracked to fit the body again at the tracked poses
-    #: (:meth:`_auto_refit`; 0 or 1: keep the body fitted at the detected pose)
-    auto_refit_frames: int = 8
+    #: (:meth:`_auto_refit`; 0 or 1: keep the body fitted at the detected pose). 16 against 8 on the 11
+    #: foreign clips: 53 against 56 mm with clean masks, 110 against 123 with noisy ones (BENCHMARKS.md).
+    auto_refit_frames: int = 16
 
     def with_skeleton(self, skeleton) -> Tracker:
         """The same tracker (all keywords alike) on another skeleton, e.g. a body fitted to the masks. It runs
@@ -784,8 +785,9 @@ class Tracker(nn.Module):
         on the refitted body, and it is kept where its log evidence ``log p(z_1..k)`` is the higher: on
         noisy masks the tracked poses are off by the noisy track's error, and a refit taken always lost
         12 mm there. On the 11 foreign clips this took ``--init auto`` from 58 to 54 mm on clean masks and
-        131 to 127 mm on noisy ones (BENCHMARKS.md). The passes use ``seed`` (not a caller's generator), so
-        the two bodies are compared on the same random numbers. ``info``: ``frames``, ``log_evidence``
+        131 to 127 mm on noisy ones with 8 frames (BENCHMARKS.md); 16 frames (the default) do better
+        still. The passes use ``seed`` (not a caller's generator), so the two bodies are compared on the
+        same random numbers. ``info``: ``frames``, ``log_evidence``
         (first body, refitted body), ``refit`` (kept)."""
         k = min(int(self.auto_refit_frames), len(frames))
         if k < 2:

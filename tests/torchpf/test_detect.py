@@ -191,7 +191,7 @@ def test_auto_init_refits_the_body_where_it_explains_the_first_frames_better(cas
         warnings.simplefilter("ignore")  # the uncalibrated-body warning, expected here
         pose, fitted = tracker._auto_init(case.frames)
         body, start, info = tracker._auto_refit(fitted, pose, case.frames, 0, 30.0)
-    assert info["frames"] == tracker.auto_refit_frames == 8
+    assert tracker.auto_refit_frames == 16 and info["frames"] == min(16, len(case.frames))
     before, after = info["log_evidence"]
     assert info["refit"] == (after > before)
     if info["refit"]:
