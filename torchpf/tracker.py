@@ -497,7 +497,8 @@ class Tracker(nn.Module):
 
     #: ``init="auto"`` on an uncalibrated body: frames tracked to fit the body again at the tracked poses
     #: (:meth:`_auto_refit`; 0 or 1: keep the body fitted at the detected pose). 16 against 8 on the 11
-    #: foreign clips: 53 against 56 mm with clean masks, 110 against 123 with noisy ones (BENCHMARKS.md).
+    #: foreign clips: 53 against 56 mm with clean masks, 110 against 123 with noisy ones, for ~10 s more
+    #: start-up per sequence on a 2-core VM (BENCHMARKS.md).
     auto_refit_frames: int = 16
 
     def with_skeleton(self, skeleton) -> Tracker:
