@@ -208,7 +208,7 @@ def test_named_prior_without_a_rate_takes_the_sequences(scene):
     fps=15 given; no warning about a missing rate. An explicit other rate is honoured."""
     import warnings
 
-    skel, cams, seq, _ = scene
+    skel, cams, seq, angles = scene
 
     def run(**options):
         tracker = Tracker(
@@ -221,6 +221,10 @@ def test_named_prior_without_a_rate_takes_the_sequences(scene):
         unset = run()
     torch.testing.assert_close(unset, run(fps=15.0), rtol=0, atol=0)
     assert not torch.equal(unset, run(fps=5.0))
+    # frames without times and no rate anywhere: tracked, with a warning that names the missing rate
+    tracker = Tracker(skel, cams, likelihood="silhouette", filter="sir", n_particles=40, progress=False)
+    with pytest.warns(UserWarning, match="no fps given and the sequence has no times"):
+        tracker.track([seq.frame(t) for t in range(2)], init=angles[0], seed=0)
 
 
 def test_auto_temperature_sets_the_first_frame_survival_rate(scene):
