@@ -305,8 +305,9 @@ class Tracker(nn.Module):
                 self.likelihood, 1.0 if temperature == "auto" else temperature
             )
         self.temperature = temperature
-        # a named prior that takes a rate but got none: track() builds it for the sequence's (or warns)
-        self._rate_unknown = False
+        # a named prior that takes a rate but got none: track() builds it for the sequence's (or warns),
+        # and remembers the rate it built it for
+        self._rate_unknown, self._rate_built = False, None
         if isinstance(dynamics, str):
             options = dict(dynamics_options or {})
             factory = DYNAMICS.get(dynamics) if dynamics in DYNAMICS else None
@@ -503,14 +504,15 @@ class Tracker(nn.Module):
 
     def with_skeleton(self, skeleton) -> Tracker:
         """The same tracker (all keywords alike) on another skeleton, e.g. a body fitted to the masks. It runs
-        where this one runs now (:meth:`to` included)."""
-        options = {**self._options, "device": self.device, "dtype": self.dtype}
+        where this one runs now (:meth:`to` included), at the frame rate its prior was built for."""
+        fps = self.fps if self.fps is not None else self._rate_built
+        options = {**self._options, "device": self.device, "dtype": self.dtype, "fps": fps}
         return type(self)(skeleton, self.cameras, **options)
 
     def _prior_for_rate(self, fps: float) -> None:
         """Build the named motion prior, and the filter around it, for frame rate ``fps``: a tracker made
         without ``fps`` learns the rate from the sequence (the likelihood and its parameters stay)."""
-        if getattr(self, "_rate_built", None) == fps:
+        if self._rate_built == fps:
             return
         options = {**dict(self._options["dynamics_options"] or {}), "fps": fps}
         self.dynamics = make_dynamics(self._options["dynamics"], self.skeleton, **options)
