@@ -907,8 +907,8 @@ class Recovery:
       With ``strata`` (default) each heading x stride stratum is searched apart (with the track's own
       particles in each) and the best kept, as :meth:`PersonDetector.search` describes: after a 10-frame
       occlusion the foreign-render cases (``python -m benchmarks.auto_init --cases 8 --recovery``, seeds 0
-      and 100) came back within 15 frames in 16 of 16 (15 of 16 with one population) at 68 mm after the
-      occlusion against 79, for about 3 % more time per case (BENCHMARKS.md).
+      and 100) came back within 80 mm in 15 frames in 16 of 16 (15 of 16 with one population), at 68 mm
+      after the occlusion against 79, for about 3 % more time per case (BENCHMARKS.md).
 
     After a run, ``lost`` and ``recovered`` (lists of frame flags; recovered: the first good frame after a
     lost run, where the re-acquired track is accepted) describe what happened.
@@ -926,10 +926,10 @@ class Recovery:
         window: int = 10,
         check_every: int = 5,
         iterations: int = 2,
-        strata: bool = True,
         init_extras=None,
         dtype: torch.dtype = torch.float32,
         fps: float = 30.0,
+        strata: bool = True,
     ):
         self.detector = detector
         self.strata = bool(strata)
