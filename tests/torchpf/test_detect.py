@@ -116,6 +116,45 @@ def test_limbs_forward_and_headings_from_structure(case, detector):
     assert float(standing[names.index("LeftHand"), 2]) < float(standing[0, 2])
 
 
+def test_a_fast_moving_person_faces_the_way_they_move(detector):
+    """Faster than ``lead_speed`` the hull's motion gives the heading: its stratum comes first, and its
+    central heading turns the rest pose's feet to within half a heading step of the motion; the shoulder
+    line adds a stratum only where it points elsewhere. Slower, a round torso slice searches every
+    quadrant and an elongated one keeps the shoulder line's heading whose feet point along the motion."""
+    from dataclasses import replace
+
+    from torchpf.detect import Detection
+
+    step = 2 * math.pi / len(detector.headings)
+    round_slice = Detection(torch.zeros(3, dtype=torch.float64), 0.0, 1.8, 100, 0.04, torch.ones(3))
+    fwd = detector.forward[:2]
+
+    def facing(k):  # the direction (rad) of the feet at heading k
+        c, s = math.cos(float(detector.headings[k])), math.sin(float(detector.headings[k]))
+        return math.atan2(s * float(fwd[0]) + c * float(fwd[1]), c * float(fwd[0]) - s * float(fwd[1]))
+
+    for angle in (0.3, 2.0, -2.5):
+        motion = 3.0 * torch.tensor([math.cos(angle), math.sin(angle), 0.0], dtype=torch.float64)
+        strata = detector.heading_choices(round_slice, motion)
+        assert len(strata) == 1 and len(strata[0]) == 3
+        off = (facing(strata[0][1]) - angle + math.pi) % (2 * math.pi) - math.pi
+        assert abs(off) <= step / 2 + 1e-9
+        # a shoulder line square to the motion (walking forwards) adds nothing; along it (sideways) adds
+        # its own stratum, after the motion's
+        lateral = torch.tensor([-math.sin(angle), math.cos(angle)], dtype=torch.float64)
+        square = replace(round_slice, axis=lateral, elongation=1.5)
+        assert detector.heading_choices(square, motion) == strata
+        sideways = replace(round_slice, axis=motion[:2] / motion[:2].norm(), elongation=1.5)
+        both = detector.heading_choices(sideways, motion)
+        assert both[0] == strata[0] and len(both) >= 2
+        # slow: the quadrants, or the shoulder line's heading facing the motion
+        slow = motion * 0.13  # 0.39 m/s: the tie-break only
+        assert len(detector.heading_choices(round_slice, slow)) == 4
+        (one,) = detector.heading_choices(square, slow)
+        off = (facing(one[1]) - angle + math.pi) % (2 * math.pi) - math.pi
+        assert abs(off) <= step / 2 + 1e-9
+
+
 def test_postures_swing_limbs_about_their_pivots_only(detector):
     """Every canonical posture leaves the torso and each limb's girdle (clavicle, hip joint) at rest: only
     the pivot and the joints below it move (IK with the girdle free twisted a clavicle by 3.6 rad on the
