@@ -18,8 +18,8 @@ bottom-up detector mixed into the proposal, as I-CONDENSATION does):
   (root DOFs solved by IK, so any Euler order works); the root placed at the hull's centre, its height the
   floor plus the rest pose's root height.
 * **Which heading**: the torso slice's principal axis gives the shoulder line up to its sign; the hull's
-  motion over the first frames picks the sign whose feet point forwards
-  (:meth:`~PersonDetector.heading_choices`).
+  motion over the first frames picks the sign whose feet point forwards, and above ``lead_speed`` (0.5 m/s)
+  the direction of motion gives the heading itself (:meth:`~PersonDetector.heading_choices`).
 * **Initial pose** (:meth:`PersonDetector.fit`): each kept heading x {standing, each stride} is refined
   by :func:`torchpf.calibrate.fit_body` on frame 0 (a soft area match: it tells the strides apart where a
   thin model's likelihood does not), and the lowest silhouette loss wins; the fitted body comes with it.
@@ -921,7 +921,7 @@ class Recovery:
       a lost one, and every ``check_every`` frames.
     * **re-acquire**: the particles and the last good estimate are moved so their roots sit over the hull
       (keeping their postures and headings) and, with fresh detector candidates (every heading x posture
-      at the hull; front or back chosen by the way the person moved since the last good frame, as for
+      at the hull; the heading chosen by the way the person moved since the last good frame, as for
       ``init="auto"``: :meth:`PersonDetector.heading_choices`), refined by :meth:`PersonDetector.search`
       (``iterations`` rounds of partitioned annealing, about ``iterations x (limbs + 1)`` frames' worth of
       likelihood evaluations; its posture prior is a per-part mixture of standing and the last good

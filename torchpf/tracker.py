@@ -770,7 +770,7 @@ class Tracker(nn.Module):
             raise ValueError(
                 'init="auto": no person found in frame 0 (fewer than two cameras see a silhouette)'
             )
-        # the hull's velocity over the first frames breaks the front/back tie (people walk forwards)
+        # the hull's velocity over the first frames gives the heading (people walk forwards)
         k = min(5, len(frames) - 1)
         later = detector.detect(frames[k]) if k > 0 else None
         fps = self.fps or 30.0
