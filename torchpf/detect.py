@@ -666,7 +666,7 @@ class PersonDetector:
         psi = math.atan2(float(det.axis[1]), float(det.axis[0])) - lat
         keep = [lead] if lead is not None else []
         for base in (psi, psi + math.pi):
-            if motion is not None and self.forward is not None and float(motion[:2].norm()) > 0.3:
+            if self.forward is not None and speed > 0.3:
                 c, s_ = math.cos(base), math.sin(base)
                 fwd = (
                     c * float(self.forward[0]) - s_ * float(self.forward[1]),
