@@ -650,14 +650,18 @@ class PersonDetector:
         """
         n = len(self.headings)
         step = 2 * math.pi / n
+
+        def stratum(turn: float) -> list[int]:  # the heading nearest a turn (rad), and its neighbours
+            k = round(turn / step)
+            return [(k + o) % n for o in (-1, 0, 1)]
+
         lead = None
         speed = float(motion[:2].norm()) if motion is not None else 0.0
         if self.forward is not None and speed > self.lead_speed:
-            beta = math.atan2(float(motion[1]), float(motion[0])) - math.atan2(
-                float(self.forward[1]), float(self.forward[0])
+            lead = stratum(
+                math.atan2(float(motion[1]), float(motion[0]))
+                - math.atan2(float(self.forward[1]), float(self.forward[0]))
             )
-            k = round(beta / step)
-            lead = [(k + o) % n for o in (-1, 0, 1)]
         if det.axis is None or det.elongation < 1.15:
             if lead is not None:
                 return [lead]
@@ -674,10 +678,10 @@ class PersonDetector:
                 )
                 if fwd[0] * float(motion[0]) + fwd[1] * float(motion[1]) < 0:
                     continue
-            k = round(base / step)
-            if lead is not None and min((k - lead[1]) % n, (lead[1] - k) % n) <= 1:
+            one = stratum(base)
+            if lead is not None and one[1] in lead:
                 continue  # the motion's stratum covers it
-            keep.append([(k + o) % n for o in (-1, 0, 1)])
+            keep.append(one)
         return keep
 
     def candidates(self, det: Detection, headings: list[int] | None = None) -> Tensor:

@@ -50,10 +50,10 @@ def _canonical(j: int, kids, rest: torch.Tensor) -> list[int]:
     return order
 
 
-def _mirror_plane(a: list[int], b: list[int], rest: torch.Tensor, kids, tol: float):
-    """``(normal (3,), point (3,))`` of the plane across which limb ``a`` (canonical joint order) reflected
-    lands on limb ``b`` in the rest pose within ``tol`` x the limb's size, or None: the plane half-way
-    between the limbs' centroids."""
+def _mirror_normal(a: list[int], b: list[int], rest: torch.Tensor, kids, tol: float) -> torch.Tensor | None:
+    """Unit normal (3,) of the plane across which limb ``a`` (canonical joint order) reflected lands on limb
+    ``b`` in the rest pose within ``tol`` x the limb's size, or None: the plane half-way between the limbs'
+    centroids."""
     if len(a) != len(b) or _shape(a[0], kids) != _shape(b[0], kids):
         return None
     pa, pb = rest[a], rest[b]
@@ -66,7 +66,7 @@ def _mirror_plane(a: list[int], b: list[int], rest: torch.Tensor, kids, tol: flo
     reflected = pa - 2 * ((pa - mid) @ normal)[:, None] * normal
     if float((reflected - pb).norm(dim=-1).max()) > tol * size:
         return None
-    return normal, mid
+    return normal
 
 
 def mirror_limbs(
@@ -102,10 +102,10 @@ def mirror_limbs(
         paired.add(i)
         found = None
         for k in range(i + 1, len(orders)):
-            plane = None if k in paired else _mirror_plane(a, orders[k], rest, kids, tol)
-            if plane is not None:
+            normal = None if k in paired else _mirror_normal(a, orders[k], rest, kids, tol)
+            if normal is not None:
                 paired.add(k)
-                found = (orders[k], plane[0])
+                found = (orders[k], normal)
                 break
         out.append((a, *found) if found else (a, None, None))
     return out
