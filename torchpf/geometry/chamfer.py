@@ -6,7 +6,7 @@ Per image and pose (pixels)::
 
     model = sum_i w_i rho(d_mask(p_i)) / sum_i w_i        p_i, w_i: sample_in_capsules (area points)
     cover = (1 / n) sum_j rho(d_model(q_j))               q_j: n foreground samples of the mask
-    rho(d) = min(d, tau)^2
+    rho(d) = min(d, tau)^2 + 2 a min(d, tau)                  a = linear (pixels)
 
 ``d_mask`` is a bilinear look-up in the mask's outside-distance image (growing by the distance to the image
 outside it), ``d_model`` the distance to the nearest capsule (:func:`distance_to_capsules`).
@@ -51,6 +51,7 @@ def capsule_chamfer(
     tau: float,
     n_body: int = 8,
     n_cap: int = 2,
+    linear: float = 0.0,
 ) -> tuple[Tensor, Tensor]:
     """The model and cover terms of the truncated chamfer distance (module docstring), per image and pose.
 
@@ -63,6 +64,7 @@ def capsule_chamfer(
         samples: ``(..., 1, n, 2)`` foreground points of each image (pixels), shared by its N poses.
         tau: truncation (pixels) of each point's distance.
         n_body, n_cap: area points per capsule body and end cap (:func:`sample_in_capsules`).
+        linear: pixels, ``a`` of ``rho`` (0: the squared distance alone).
 
     Returns:
         ``model``, ``cover`` ``(..., N)`` in squared pixels; differentiable in the capsules' ``pa``, ``pb``,
@@ -77,9 +79,13 @@ def capsule_chamfer(
     fields = [f.reshape(G, N, C, -1) for f in (caps.pa, caps.pb, caps.ra, caps.rb)]
     valid = caps.valid.reshape(G, N, C)
     if torch.is_grad_enabled() and any(f.requires_grad for f in fields):
-        model, cover = _Chamfer.apply(*fields, valid, image, fg, float(tau), int(n_body), int(n_cap))
+        model, cover = _Chamfer.apply(
+            *fields, valid, image, fg, float(tau), int(n_body), int(n_cap), float(linear)
+        )
     else:
-        model, cover, _ = _chamfer(*fields, valid, image, fg, float(tau), int(n_body), int(n_cap), False)
+        model, cover, _ = _chamfer(
+            *fields, valid, image, fg, float(tau), int(n_body), int(n_cap), float(linear), False
+        )
     return model.reshape(*group, N), cover.reshape(*group, N)
 
 
@@ -115,8 +121,8 @@ class _Chamfer(torch.autograd.Function):
     it."""
 
     @staticmethod
-    def forward(ctx, pa, pb, ra, rb, valid, image, fg, tau, n_body, n_cap):
-        model, cover, (jm, jc) = _chamfer(pa, pb, ra, rb, valid, image, fg, tau, n_body, n_cap, True)
+    def forward(ctx, pa, pb, ra, rb, valid, image, fg, tau, n_body, n_cap, linear):
+        model, cover, (jm, jc) = _chamfer(pa, pb, ra, rb, valid, image, fg, tau, n_body, n_cap, linear, True)
         # (inference tensors, see _chamfer: autograd needs ordinary ones)
         ctx.save_for_backward(jm.clone(), jc.clone())
         return model.clone(), cover.clone()
@@ -125,10 +131,12 @@ class _Chamfer(torch.autograd.Function):
     def backward(ctx, g_model, g_cover):
         jm, jc = ctx.saved_tensors
         g = jm * g_model[..., None, None] + jc * g_cover[..., None, None]  # (G, N, C, 6)
-        return g[..., 0:2], g[..., 2:4], g[..., 4:5], g[..., 5:6], None, None, None, None, None, None
+        return g[..., 0:2], g[..., 2:4], g[..., 4:5], g[..., 5:6], None, None, None, None, None, None, None
 
 
-def _chamfer(pa, pb, ra, rb, valid, image, fg, tau: float, n_body: int, n_cap: int, grad: bool):
+def _chamfer(
+    pa, pb, ra, rb, valid, image, fg, tau: float, n_body: int, n_cap: int, linear: float, grad: bool
+):
     """Both terms ``(G, N)`` of capsules ``pa``, ``pb`` (G, N, C, 2), ``ra``, ``rb`` (G, N, C, 1), ``valid``
     (G, N, C) against images (G, H, W) and samples (G, n, 2); with ``grad`` also each term's gradient in
     ``(pa, pb, ra, rb)`` ``(G, N, C, 6)``, else None.
@@ -137,12 +145,14 @@ def _chamfer(pa, pb, ra, rb, valid, image, fg, tau: float, n_body: int, n_cap: i
     size 2 (a broadcast, a sum, a stack) costs several plain passes of the same size."""
     # inference mode: no graph and no version counters, a tenth less per-operation overhead than no_grad
     with torch.inference_mode():
-        model, jm = _model_term(pa, pb, ra[..., 0], rb[..., 0], valid, image, tau, n_body, n_cap, grad)
-        cover, jc = _cover_term(pa, pb, ra, rb, valid, fg, tau, grad)
+        model, jm = _model_term(
+            pa, pb, ra[..., 0], rb[..., 0], valid, image, tau, n_body, n_cap, linear, grad
+        )
+        cover, jc = _cover_term(pa, pb, ra, rb, valid, fg, tau, linear, grad)
     return model, cover, ((jm, jc) if grad else None)
 
 
-def _model_term(pa, pb, ra, rb, valid, image, tau: float, n_body: int, n_cap: int, grad: bool):
+def _model_term(pa, pb, ra, rb, valid, image, tau: float, n_body: int, n_cap: int, linear: float, grad: bool):
     """``sum_i w_i rho(d_mask(p_i)) / sum_i w_i`` (G, N) and its gradient (G, N, C, 6) or None."""
     G, N, C = valid.shape
     px, py, k = _area_points(Capsules2D(pa, pb, ra, rb, valid), n_body, n_cap, derivatives=grad)
@@ -152,14 +162,14 @@ def _model_term(pa, pb, ra, rb, valid, image, tau: float, n_body: int, n_cap: in
     value, gx, gy = _lookup_with_gradient(image, px.view(G, -1), py.view(G, -1), grad)
     value = value.view(G, N, C, M)
     d = value.clamp_max(tau)
-    f = d * d
+    f = d * (d + 2 * linear) if linear else d * d
     Wc = w.sum((-2, -1)).clamp_min(1e-9)
     model = (w * f).sum((-2, -1)) / Wc
     if not grad:
         return model, None
     inv = Wc.reciprocal()[..., None, None]
     # d model / d p_i and d model / d w_i (G, N, C, M); (all weights 0: the model term is 0 either way)
-    slope = torch.where(value <= tau, d, 0.0) * (2 * inv) * w
+    slope = torch.where(value <= tau, d + linear if linear else d, 0.0) * (2 * inv) * w
     g_px, g_py = slope * gx.view(G, N, C, M), slope * gy.view(G, N, C, M)
     g_w = (f - model[..., None, None]) * inv
     s_e = torch.addcmul(g_px * exu, g_py, eyu)  # g . e
@@ -176,7 +186,7 @@ def _model_term(pa, pb, ra, rb, valid, image, tau: float, n_body: int, n_cap: in
     return model, torch.stack([g_ax, g_ay, g_ex, g_ey, g_ra, g_rb], -1)
 
 
-def _cover_term(pa, pb, ra, rb, valid, fg, tau: float, grad: bool):
+def _cover_term(pa, pb, ra, rb, valid, fg, tau: float, linear: float, grad: bool):
     """``(1 / n) sum_j rho(d_model(q_j))`` (G, N) and its gradient (G, N, C, 6) or None."""
     G, N, C = valid.shape
     n = fg.shape[1]
@@ -184,13 +194,14 @@ def _cover_term(pa, pb, ra, rb, valid, fg, tau: float, grad: bool):
     best, nearest = _nearest_capsules(fg, fields, valid.reshape(G, N * C, 1), C)
     if not grad:
         d = best.clamp(0.0, tau)
-        return (d * d).mean(-1), None
+        return (d * (d + 2 * linear)).mean(-1), None
     d, k = _nearest_axis_distance(fg, fields, nearest, best)
     dc = d.clamp(0.0, tau)
-    cover = (dc * dc).view(G, N, n).mean(-1)
+    cover = (dc * (dc + 2 * linear)).view(G, N, n).mean(-1)
     # d = |q| - ra - t (rb - ra), q = p - pa - t e, t = clamp(s, 0, 1), s = (p - pa) . e / |e|^2
     ex, ey, dx, dy, s, t = k["ex"], k["ey"], k["dx"], k["dy"], k["s"], k["t"]
-    g_d = torch.where(dc == d, dc, 0.0) * (2.0 / n)  # d cover / d d_j where the clamps pass it (not inf)
+    # d cover / d d_j where the clamps pass it (not inf)
+    g_d = torch.where(dc == d, dc + linear, 0.0) * (2.0 / n)
     r_inv = k["qq"].clamp_min(1e-12).rsqrt()
     ux, uy = k["qx"] * r_inv, k["qy"] * r_inv  # d |q| / d q
     d_t = -torch.addcmul(ux * ex, uy, ey) - (k["rb"] - k["ra"])  # d d / d t

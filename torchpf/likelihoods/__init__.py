@@ -19,8 +19,9 @@ registry), :mod:`~torchpf.likelihoods.images` (silhouette, dual silhouette, over
 * :class:`DualSilhouetteLikelihood` (Fontmarty §3.2.2): same form, D_l the share of N_s foreground points
   not covered by the projected model. obs: ``Silhouettes``.
 * :class:`SilhouetteDistanceLikelihood` (Gall et al. 2010 §4): ``-sum_l E_l / 2 sigma^2``, E_l the mean
-  squared (truncated) distance of the model's area points to the mask plus that of the mask's points to the
-  model; informative away from the boundary (the cue of :mod:`torchpf.refine`). obs: ``Silhouettes``.
+  cost ``rho(d) = min(d, tau)^2 + 2 a min(d, tau)`` of the model's area points' distance to the mask plus
+  that of the mask's points' distance to the model; informative away from the boundary (the cue of
+  :mod:`torchpf.refine`). obs: ``Silhouettes``.
 * :class:`OverlapLikelihood` (Rius et al. eq. 7): ``beta sum_l log(|model & mask| / |model | mask|)``.
   obs: ``Silhouettes``.
 * :class:`Keypoints2DLikelihood` (Brubaker et al. eq. 3-4): ``sum_{l,i} log p(m_li - P_l(X_i))``, Gaussian or

@@ -22,13 +22,17 @@ from .._masks import render_masks
 TAU = 6.0
 
 
-def _reference(caps, outside, fg, tau=TAU, n_body=8, n_cap=2):
-    """The composition of the distance cue before `capsule_chamfer` (autograd through all of it)."""
+def _reference(caps, outside, fg, tau=TAU, n_body=8, n_cap=2, linear=0.0):
+    """The composition of the distance cue before `capsule_chamfer` (autograd through all of it), with
+    ``rho(d) = min(d, tau)^2 + 2 linear min(d, tau)``."""
+
+    def rho(d):
+        d = d.clamp_max(tau)
+        return d * d + 2 * linear * d
+
     pts, w = sample_in_capsules(caps, n_body, n_cap)  # (V, N, P, 2)
-    d_in = _distance_lookup(outside, pts).clamp_max(tau)
-    model = (w * d_in * d_in).sum(-1) / w.sum(-1).clamp_min(1e-9)
-    d_cov = distance_to_capsules(fg, caps).clamp_max(tau)
-    return model, (d_cov * d_cov).mean(-1)
+    model = (w * rho(_distance_lookup(outside, pts))).sum(-1) / w.sum(-1).clamp_min(1e-9)
+    return model, rho(distance_to_capsules(fg, caps)).mean(-1)
 
 
 @pytest.fixture(scope="module")
@@ -61,13 +65,17 @@ def scene(human):
     }
 
 
-@pytest.mark.parametrize("tau", [TAU, 1e9])
-def test_values_and_gradients_match_autograd_of_the_composition(scene, tau):
+@pytest.mark.parametrize("tau, linear", [(TAU, 0.0), (1e9, 0.0), (TAU, 1.5)])
+def test_values_and_gradients_match_autograd_of_the_composition(scene, tau, linear):
     caps = scene["caps"]
     leaves = [f.clone().requires_grad_() for f in (caps.pa, caps.pb, caps.ra, caps.rb)]
     ref_leaves = [f.clone().requires_grad_() for f in leaves]
-    got = capsule_chamfer(Capsules2D(*leaves, caps.valid), scene["outside"], scene["fg"], tau=tau)
-    ref = _reference(Capsules2D(*ref_leaves, caps.valid), scene["outside"], scene["fg"], tau=tau)
+    got = capsule_chamfer(
+        Capsules2D(*leaves, caps.valid), scene["outside"], scene["fg"], tau=tau, linear=linear
+    )
+    ref = _reference(
+        Capsules2D(*ref_leaves, caps.valid), scene["outside"], scene["fg"], tau=tau, linear=linear
+    )
     assert got[0].shape == got[1].shape == caps.valid.shape[:2]
     for a, b in zip(got, ref, strict=True):
         torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-9)
@@ -80,7 +88,8 @@ def test_values_and_gradients_match_autograd_of_the_composition(scene, tau):
         torch.testing.assert_close(a, b, rtol=1e-7, atol=1e-9)
     assert bool(torch.autograd.grad(got[1].sum(), leaves[2])[0].abs().sum() > 0)
     with torch.no_grad():  # the forward alone gives the same values
-        for a, b in zip(capsule_chamfer(caps, scene["outside"], scene["fg"], tau=tau), got, strict=True):
+        alone = capsule_chamfer(caps, scene["outside"], scene["fg"], tau=tau, linear=linear)
+        for a, b in zip(alone, got, strict=True):
             torch.testing.assert_close(a, b.detach(), rtol=1e-9, atol=1e-9)
 
 

@@ -49,7 +49,8 @@ def _reference(name, skel, rig, theta, obs: Silhouettes):
             d_in = _outside_lookup(clean.outside_distance()[v].to(pts), pts).clamp_max(6.0)
             fg, ok = clean.foreground_samples(128)
             d_cov = distance_to_capsules(fg[v].to(theta), caps).clamp_max(6.0)
-            E = (w * d_in**2).sum(-1) / w.sum(-1) + (d_cov**2).mean(-1)
+            a = 4.0  # the cue's default linear part: rho(d) = d^2 + 2 a d
+            E = (w * (d_in**2 + 2 * a * d_in)).sum(-1) / w.sum(-1) + (d_cov**2 + 2 * a * d_cov).mean(-1)
             out.append(E if ok[v] else torch.zeros(len(theta), dtype=theta.dtype))
     return torch.stack(out, -1)
 
