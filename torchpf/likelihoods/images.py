@@ -337,9 +337,8 @@ class SilhouetteDistanceLikelihood(ImageLikelihood):
             steps, normalised by the gradient's size, walk along it (on foreign renders it moved the whole
             body ~2 cm down from the true pose). With ``a = 4`` a point just outside costs ``8 d``: the same
             shift costs 30x more. On the foreign renders of 11 CMU clips (``track``'s defaults, 2 runs)
-            clean masks 43 -> 38 mm; noisy 113 -> 94 mm with one draw of the masks' defects, 115 -> 116
-            with another; ``a`` = 2 and 8 were no better (BENCHMARKS.md). 0 gives the plain squared
-            distance.
+            clean masks 43 -> 38 mm, noisy ones 119 -> 104 mm over three draws of their defects; ``a`` = 2
+            and 8 were no better (BENCHMARKS.md). 0 gives the plain squared distance.
         tau: pixels; truncation of each point's distance. 6 (about a limb's width at 160x120) was better
             than 10 and 20 on foreign renders with mask defects (a limb missing from one camera, merged
             limbs: a point beyond ``tau`` no longer pulls) and no worse on clean ones (BENCHMARKS.md).
