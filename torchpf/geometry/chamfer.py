@@ -162,14 +162,14 @@ def _model_term(pa, pb, ra, rb, valid, image, tau: float, n_body: int, n_cap: in
     value, gx, gy = _lookup_with_gradient(image, px.view(G, -1), py.view(G, -1), grad)
     value = value.view(G, N, C, M)
     d = value.clamp_max(tau)
-    f = d * (d + 2 * linear) if linear else d * d
+    f = d * (d + 2 * linear)
     Wc = w.sum((-2, -1)).clamp_min(1e-9)
     model = (w * f).sum((-2, -1)) / Wc
     if not grad:
         return model, None
     inv = Wc.reciprocal()[..., None, None]
     # d model / d p_i and d model / d w_i (G, N, C, M); (all weights 0: the model term is 0 either way)
-    slope = torch.where(value <= tau, d + linear if linear else d, 0.0) * (2 * inv) * w
+    slope = torch.where(value <= tau, d + linear, 0.0) * (2 * inv) * w
     g_px, g_py = slope * gx.view(G, N, C, M), slope * gy.view(G, N, C, M)
     g_w = (f - model[..., None, None]) * inv
     s_e = torch.addcmul(g_px * exu, g_py, eyu)  # g . e

@@ -330,7 +330,8 @@ class SilhouetteDistanceLikelihood(ImageLikelihood):
     point can cost (a mask defect, a spurious blob); beyond it the point no longer pulls.
 
     Args:
-        sigma: pixels; the per-camera RMS point distance that costs one nat (scale with the mask size).
+        sigma: pixels; a camera costs one nat at ``E_l = 2 sigma^2`` (with ``linear = 0``: an RMS point
+            distance of ``sigma``; scale it with the mask size).
         linear: pixels; ``a`` above, the linear part of ``rho``. A squared distance alone has no slope at
             the mask's boundary: a body shifted by half a pixel costs almost nothing (0.001 nats per cm on
             the test suite's renders), so the cue is flat around its optimum and the refinement's Adam
