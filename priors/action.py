@@ -297,9 +297,9 @@ class ActionModel(nn.Module):
         ``x = center + wrap(θ_p - center)`` for angular DOFs, ``θ_p`` for the others.
         """
         self._check_theta(theta)
-        x = theta.index_select(-1, self.posture_index)
+        x = theta.index_select(-1, self.posture_index.to(theta.device))
         center = self.center.to(x)
-        return torch.where(self.angular, center + wrap_angle(x - center), x)
+        return torch.where(self.angular.to(x.device), center + wrap_angle(x - center), x)
 
     def project(self, theta: Tensor) -> Tensor:
         """aSpace coordinates ``φ̃ = U (x - μ)`` of poses: ``(..., D_full) -> (..., D)`` (radians).
@@ -321,7 +321,7 @@ class ActionModel(nn.Module):
         """Full poses: ``base (..., D_full)`` with the posture DOFs replaced by ``reconstruct(coords)``."""
         self._check_theta(base)
         posture = self.reconstruct(coords.to(base))
-        index = self.posture_index.expand(*posture.shape[:-1], -1)
+        index = self.posture_index.to(base.device).expand(*posture.shape[:-1], -1)
         return base.scatter(-1, index, posture)
 
     # ------------------------------------------------------------------------------------------ eq. 6
@@ -448,7 +448,7 @@ class ActionModel(nn.Module):
         ahead = (1 - w) * g[lo] + w * g[hi]
         step = (ahead - g[k.long()]) @ self.components.to(theta)  # (..., P)
         out = torch.zeros_like(theta)
-        return out.index_add(-1, self.posture_index, step)
+        return out.index_add(-1, self.posture_index.to(out.device), step)
 
     def accepts(self, theta: Tensor, generator: torch.Generator | None = None) -> Tensor:
         """Rius eq. 6: ``p(φ_t | Γ) ∈ {0, 1}`` per pose, ``(..., D_full) -> (...)`` bool.
@@ -545,7 +545,7 @@ class ActionModel(nn.Module):
         Raises:
             ValueError: the masks differ on a posture DOF (names them).
         """
-        want = torch.as_tensor(revolute, dtype=torch.bool).cpu()[self.posture_index]
+        want = torch.as_tensor(revolute, dtype=torch.bool).cpu()[self.posture_index.cpu()]
         bad = [
             n
             for n, a, b in zip(self.posture_dofs, self.angular.tolist(), want.tolist(), strict=True)
@@ -1196,7 +1196,8 @@ class ActionProposal(nn.Module):
         if std is None:
             raise ValueError("ActionProposal needs dynamics with a std (or sigma) for the non-posture DOFs")
         noise = torch.as_tensor(std, dtype=torch.float64).expand(len(model.dof_names)).clone()
-        noise[model.posture_index] = model.sigma_phi[model.posture_index] * float(sigma_scale)
+        index = model.posture_index.cpu()
+        noise[index] = model.sigma_phi.cpu()[index] * float(sigma_scale)
         self.register_buffer("noise", noise.clamp_min(1e-6))
         self.beta = float(beta)
 
