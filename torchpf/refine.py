@@ -80,7 +80,7 @@ class RefineResult:
 
 
 class Refiner(nn.Module):
-    """Projected Adam on ``E(x) = -log p_cue(z | x) + anchor term`` (module docstring), batched over poses.
+    """Projected Adam on ``E(x) = -log p_cue(z | x) - log p(x)`` (module docstring), batched over poses.
 
     Args:
         skeleton: the body model (its limits, revolute mask).

@@ -1,7 +1,8 @@
 """`capsule_chamfer` (values and hand-written gradient) against the composition it replaces, differentiated
 by autograd: area points (`sample_in_capsules`), a `grid_sample` look-up in the mask's distance image and
 `distance_to_capsules`. The masks come from the independent renderer of `_masks.py` (OpenCV), at poses
-other than the capsules'."""
+other than the capsules'. Both implementations are checked: the tensor operations and, on a CPU, the fused
+numba kernel (`torchpf.geometry._chamfer_cpu`)."""
 
 import pytest
 import torch
@@ -9,7 +10,9 @@ import torch
 from torchpf.camera import camera_ring
 from torchpf.geometry import (
     Capsules2D,
+    _chamfer_cpu,
     capsule_chamfer,
+    chamfer,
     distance_to_capsules,
     project_capsules,
     sample_in_capsules,
@@ -65,8 +68,17 @@ def scene(human):
     }
 
 
+@pytest.fixture(params=["tensor", "fused"])
+def path(request, monkeypatch):
+    """Which implementation `capsule_chamfer` runs on the CPU."""
+    if request.param == "fused" and not _chamfer_cpu.AVAILABLE:
+        pytest.skip("numba is not installed")
+    monkeypatch.setattr(chamfer, "FUSED_CPU", request.param == "fused")
+    return request.param
+
+
 @pytest.mark.parametrize("tau, linear", [(TAU, 0.0), (1e9, 0.0), (TAU, 1.5)])
-def test_values_and_gradients_match_autograd_of_the_composition(scene, tau, linear):
+def test_values_and_gradients_match_autograd_of_the_composition(scene, tau, linear, path):
     caps = scene["caps"]
     leaves = [f.clone().requires_grad_() for f in (caps.pa, caps.pb, caps.ra, caps.rb)]
     ref_leaves = [f.clone().requires_grad_() for f in leaves]
@@ -93,7 +105,7 @@ def test_values_and_gradients_match_autograd_of_the_composition(scene, tau, line
             torch.testing.assert_close(a, b.detach(), rtol=1e-9, atol=1e-9)
 
 
-def test_float32_and_per_sequence_images(scene):
+def test_float32_and_per_sequence_images(scene, path):
     """float32 agrees with float64; (S, V, H, W) images with (S, V, N, C) capsules score each sequence on
     its own images, as one call per sequence does."""
     caps, outside, fg = scene["caps"], scene["outside"], scene["fg"]
@@ -109,3 +121,36 @@ def test_float32_and_per_sequence_images(scene):
     for a, b, c in zip(both, ref, other, strict=True):
         torch.testing.assert_close(a[0], b)
         torch.testing.assert_close(a[1], c)
+
+
+@pytest.mark.skipif(not _chamfer_cpu.AVAILABLE, reason="numba is not installed")
+@pytest.mark.parametrize("linear", [0.0, 4.0])
+def test_the_fused_kernel_equals_the_tensor_version_at_the_edge_cases(monkeypatch, linear):
+    """Random capsules with the cases each implementation branches on: an axis of length 0, capsules off
+    the image, invalid capsules, a pose with none valid (its cover term is ``rho(tau)``), a one-pixel-wide
+    image; values and gradients of both terms equal to rounding."""
+    g = torch.Generator().manual_seed(3)
+    out = {}
+    for shape in [(40, 50), (30, 1)]:
+        H, W = shape
+        G, N, C, n = 3, 5, 7, 64
+        size = torch.tensor([W, H], dtype=torch.float64)
+        pa = torch.rand(G, N, C, 2, generator=g, dtype=torch.float64) * size
+        pb = pa + 6 * torch.randn(G, N, C, 2, generator=g, dtype=torch.float64)
+        pb[0, 0, 0] = pa[0, 0, 0]
+        pa[1, 1, 1] = torch.tensor([-5.0, 60.0], dtype=torch.float64)
+        ra = 0.5 + 3 * torch.rand(G, N, C, 1, generator=g, dtype=torch.float64)
+        rb = 0.5 + 3 * torch.rand(G, N, C, 1, generator=g, dtype=torch.float64)
+        valid = torch.rand(G, N, C, generator=g) > 0.15
+        valid[2, 3] = False
+        image = 10 * torch.rand(G, H, W, generator=g, dtype=torch.float64)
+        fg = torch.rand(G, 1, n, 2, generator=g, dtype=torch.float64) * size
+        for fused in (False, True):
+            monkeypatch.setattr(chamfer, "FUSED_CPU", fused)
+            leaves = [f.clone().requires_grad_() for f in (pa, pb, ra, rb)]
+            model, cover = capsule_chamfer(Capsules2D(*leaves, valid), image, fg, tau=TAU, linear=linear)
+            grads = torch.autograd.grad((model * 0.3).sum() + cover.sum(), leaves)
+            out[shape, fused] = (model, cover, *grads)
+        assert float(out[shape, True][1][2, 3].detach()) == pytest.approx(TAU * (TAU + 2 * linear))
+        for a, b in zip(out[shape, True], out[shape, False], strict=True):
+            torch.testing.assert_close(a.detach(), b.detach(), rtol=1e-9, atol=1e-9)
