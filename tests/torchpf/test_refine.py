@@ -202,3 +202,33 @@ def test_the_linear_part_gives_the_distance_cue_a_slope_at_the_boundary(human, s
     assert drops[4.0] > 10 * drops[0.0] > 0, drops  # measured: 0.002 and 0.06 nats
     with pytest.raises(ValueError, match="linear"):
         SilhouetteDistanceLikelihood(human, scene["rig"], linear=-1.0)
+
+
+class _SlopeCue(torch.nn.Module):
+    """``log p = -((x_a - 0.3) / 0.05)^2 / 2 - 1e-6 x_b``: one DOF the cue sees, one it barely sees."""
+
+    def __init__(self, a: int, b: int):
+        super().__init__()
+        self.a, self.b = a, b
+
+    def forward(self, x, obs):
+        return -0.5 * ((x[..., self.a] - 0.3) / 0.05).square() - 1e-6 * x[..., self.b]
+
+
+def test_damping_keeps_a_dof_the_cue_barely_sees_still(human):
+    """Adam normalises each DOF's step by its gradient's size, so a DOF with a gradient of 1e-6 (rounding
+    noise, or a mask defect's pull on a limb inside the silhouette) takes full steps; with ``damping`` its
+    step is in proportion to its gradient, and the DOF the cue sees still converges."""
+    rev = torch.nonzero(human.dof_revolute & (human.lower < -0.5) & (human.upper > 0.5)).flatten()
+    a, b = int(rev[0]), int(rev[1])
+    start = human.clamp(torch.zeros(1, len(human.dof_names), dtype=torch.float64))
+    moved = {}
+    for damping in (0.0, 0.1):
+        out = Refiner(human, cue=_SlopeCue(a, b), steps=20, damping=damping).double()(start, None)
+        assert abs(float(out.x[0, a]) - 0.3) < 0.05  # the seen DOF reaches its optimum either way
+        moved[damping] = abs(float(out.x[0, b] - start[0, b]))
+    assert moved[0.0] > 0.1  # plain Adam: ~20 steps of lr = 0.03 rad (decayed) for a 1e-6 slope
+    assert moved[0.1] < 1e-4
+    assert Refiner(human, cue=_SlopeCue(a, b)).damping == 0.1  # the default
+    with pytest.raises(ValueError, match="damping"):
+        Refiner(human, cue=_SlopeCue(a, b), damping=-1.0)
