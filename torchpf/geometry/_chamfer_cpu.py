@@ -27,6 +27,8 @@ AVAILABLE = numba is not None
 def _lookup(image, g, px, py):
     """Bilinear look-up of ``image[g]`` at pixel ``(px, py)`` continued outside the image by the distance
     to it, and its slope ``(gx, gy)`` (``_lookup_with_gradient`` of the tensor version, replicate padding)."""
+    if math.isnan(px) or math.isnan(py):  # a NaN pose: NaN, and no index computed from it
+        return math.nan, 0.0, 0.0
     H, W = image.shape[1], image.shape[2]
     ix = min(max(px, 0.0), W - 1.0)
     iy = min(max(py, 0.0), H - 1.0)
@@ -50,8 +52,17 @@ def _lookup(image, g, px, py):
     return value, gx, gy
 
 
+def _capsule(pa, pb, ra, rb, g, i, c):
+    """Capsule ``c`` of image ``g`` and pose ``i``: its axis' start ``ax, ay``, the axis ``ex, ey`` (``pb -
+    pa``), the axis' length ``L`` (at least 1e-9) and the radii ``ra, rb``."""
+    ax, ay = pa[g, i, c, 0], pa[g, i, c, 1]
+    ex, ey = pb[g, i, c, 0] - ax, pb[g, i, c, 1] - ay
+    return ax, ay, ex, ey, max(math.hypot(ex, ey), 1e-9), ra[g, i, c], rb[g, i, c]
+
+
 if AVAILABLE:
     _lookup = numba.njit(cache=True, inline="always")(_lookup)
+    _capsule = numba.njit(cache=True, inline="always")(_capsule)
 
 
 def _kernel(pa, pb, ra, rb, valid, image, fg, u, h, cos_c, sin_c, tau, linear, grad, model, cover, jm, jc):
@@ -66,13 +77,13 @@ def _kernel(pa, pb, ra, rb, valid, image, fg, u, h, cos_c, sin_c, tau, linear, g
     M = n_body + 2 * n_cap
     half_disc = 0.5 * math.pi / n_cap
     a = linear
-    # per point of one pose: look-up value, slope, alpha, beta, area
-    val = np.empty((C, M), pa.dtype)
-    sgx = np.empty((C, M), pa.dtype)
-    sgy = np.empty((C, M), pa.dtype)
-    al = np.empty((C, M), pa.dtype)
-    be = np.empty((C, M), pa.dtype)
-    wt = np.empty((C, M), pa.dtype)
+    # per point of one pose, in double precision as the arithmetic: look-up value, slope, alpha, beta, area
+    val = np.empty((C, M), np.float64)
+    sgx = np.empty((C, M), np.float64)
+    sgy = np.empty((C, M), np.float64)
+    al = np.empty((C, M), np.float64)
+    be = np.empty((C, M), np.float64)
+    wt = np.empty((C, M), np.float64)
     best = np.empty(n, np.float64)
     near = np.empty(n, np.int64)
     for g in range(G):
@@ -83,11 +94,8 @@ def _kernel(pa, pb, ra, rb, valid, image, fg, u, h, cos_c, sin_c, tau, linear, g
             for c in range(C):
                 if not valid[g, i, c]:
                     continue
-                ax, ay = pa[g, i, c, 0], pa[g, i, c, 1]
-                ex, ey = pb[g, i, c, 0] - ax, pb[g, i, c, 1] - ay
-                L = max(math.hypot(ex, ey), 1e-9)
+                ax, ay, ex, ey, L, r_a, r_b = _capsule(pa, pb, ra, rb, g, i, c)
                 inv = 1.0 / L
-                r_a, r_b = ra[g, i, c], rb[g, i, c]
                 dr = r_b - r_a
                 for k in range(M):
                     if k < n_body:
@@ -124,11 +132,8 @@ def _kernel(pa, pb, ra, rb, valid, image, fg, u, h, cos_c, sin_c, tau, linear, g
                         jm[g, i, c, q] = 0.0
                     if not valid[g, i, c]:
                         continue
-                    ax, ay = pa[g, i, c, 0], pa[g, i, c, 1]
-                    ex, ey = pb[g, i, c, 0] - ax, pb[g, i, c, 1] - ay
-                    L = max(math.hypot(ex, ey), 1e-9)
+                    ax, ay, ex, ey, L, r_a, r_b = _capsule(pa, pb, ra, rb, g, i, c)
                     inv = 1.0 / L
-                    r_a, r_b = ra[g, i, c], rb[g, i, c]
                     dr = r_b - r_a
                     g_ex = g_ey = s_px = s_py = g_ra = g_rb = g_L = 0.0
                     for k in range(M):
@@ -191,12 +196,10 @@ def _kernel(pa, pb, ra, rb, valid, image, fg, u, h, cos_c, sin_c, tau, linear, g
             for c in range(C):
                 if not valid[g, i, c]:
                     continue
-                ax, ay = pa[g, i, c, 0], pa[g, i, c, 1]
-                ex, ey = pb[g, i, c, 0] - ax, pb[g, i, c, 1] - ay
+                ax, ay, ex, ey, _, r_a, r_b = _capsule(pa, pb, ra, rb, g, i, c)
                 ee = ex * ex + ey * ey
                 inv_ee = 1.0 / ee if ee > 1e-12 else 0.0
-                r_a = ra[g, i, c]
-                dr = rb[g, i, c] - r_a
+                dr = r_b - r_a
                 for j in range(n):
                     dx, dy = fg[g, j, 0] - ax, fg[g, j, 1] - ay
                     s = (dx * ex + dy * ey) * inv_ee
@@ -218,8 +221,7 @@ def _kernel(pa, pb, ra, rb, valid, image, fg, u, h, cos_c, sin_c, tau, linear, g
                 if not grad or dc != d:
                     continue
                 c = near[j]
-                ax, ay = pa[g, i, c, 0], pa[g, i, c, 1]
-                ex, ey = pb[g, i, c, 0] - ax, pb[g, i, c, 1] - ay
+                ax, ay, ex, ey, _, r_a, r_b = _capsule(pa, pb, ra, rb, g, i, c)
                 dx, dy = qx0 - ax, qy0 - ay
                 ee = ex * ex + ey * ey
                 inv_ee = 1.0 / ee if ee > 1e-12 else 0.0
@@ -229,7 +231,7 @@ def _kernel(pa, pb, ra, rb, valid, image, fg, u, h, cos_c, sin_c, tau, linear, g
                 r_inv = 1.0 / math.sqrt(max(qx * qx + qy * qy, 1e-12))
                 ux, uy = qx * r_inv, qy * r_inv
                 g_d = (dc + a) * (2.0 / n)
-                d_t = -(ux * ex + uy * ey) - (rb[g, i, c] - ra[g, i, c])
+                d_t = -(ux * ex + uy * ey) - (r_b - r_a)
                 d_s = d_t * inv_ee if t == s else 0.0
                 g_bx = -t * ux + d_s * (dx - 2 * s * ex)
                 g_by = -t * uy + d_s * (dy - 2 * s * ey)
@@ -239,7 +241,7 @@ def _kernel(pa, pb, ra, rb, valid, image, fg, u, h, cos_c, sin_c, tau, linear, g
                 jc[g, i, c, 3] += g_by * g_d
                 jc[g, i, c, 4] += (t - 1.0) * g_d
                 jc[g, i, c, 5] += -t * g_d
-            cover[g, i] = total / n
+            cover[g, i] = total / n if n > 0 else math.nan
 
 
 _compiled = numba.njit(cache=True, nogil=True)(_kernel) if AVAILABLE else None

@@ -154,3 +154,21 @@ def test_the_fused_kernel_equals_the_tensor_version_at_the_edge_cases(monkeypatc
         assert float(out[shape, True][1][2, 3].detach()) == pytest.approx(TAU * (TAU + 2 * linear))
         for a, b in zip(out[shape, True], out[shape, False], strict=True):
             torch.testing.assert_close(a.detach(), b.detach(), rtol=1e-9, atol=1e-9)
+
+
+@pytest.mark.parametrize("fused", [False, True])
+def test_a_nan_pose_scores_nan_and_leaves_the_others_alone(scene, monkeypatch, fused):
+    """A pose whose capsules are NaN (a particle that left the reals) scores NaN in both terms' sum, never
+    an index computed from NaN; the other poses' values are those of a call without it."""
+    if fused and not _chamfer_cpu.AVAILABLE:
+        pytest.skip("numba is not installed")
+    monkeypatch.setattr(chamfer, "FUSED_CPU", fused)
+    caps, outside, fg = scene["caps"], scene["outside"], scene["fg"]
+    fields = [f.clone() for f in (caps.pa, caps.pb, caps.ra, caps.rb)]
+    fields[0][:, 2] = float("nan")
+    model, cover = capsule_chamfer(Capsules2D(*fields, caps.valid), outside, fg, tau=TAU, linear=4.0)
+    assert torch.isnan(model[:, 2] + cover[:, 2]).all()
+    ref = capsule_chamfer(caps, outside, fg, tau=TAU, linear=4.0)
+    keep = [0, 1, 3, 4]
+    torch.testing.assert_close(model[:, keep], ref[0][:, keep])
+    torch.testing.assert_close(cover[:, keep], ref[1][:, keep])
