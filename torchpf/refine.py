@@ -24,7 +24,7 @@ finger inside the silhouette, a forearm's roll, a limb a mask defect pulls at) t
 tiny gradients, rounding noise included: two float32 runs of one refinement, whose cue values differed by
 1e-6, ended 0.1-0.27 rad apart in such DOFs. ``damping`` raises Adam's ``eps`` to a share of the pose's
 largest gradient (each scaled by its DOF's step), so such a DOF moves in proportion to its gradient (as in
-plain gradient descent) while the DOFs the cue sees keep Adam's steps; with 0.1 the two runs agree to 1e-7.
+plain gradient descent) while the DOFs the cue sees keep Adam's steps; with 0.1 the two runs agree to 3e-7.
 On the foreign renders of the 11 CMU clips (``track``'s defaults, 2 runs; BENCHMARKS.md) 0.1 took clean
 masks from 38 to 37-38 mm and noisy ones from 108 to 99 mm over three draws of their defects; 0.3 gave 94 mm
 noisy but 40-42 mm clean, and 1.0 47 mm clean.

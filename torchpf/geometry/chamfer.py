@@ -19,7 +19,7 @@ backward only scales it. Values and gradients equal those of the composition of 
 a ``grid_sample`` look-up and :func:`distance_to_capsules` to rounding (``tests/torchpf/geometry/
 test_chamfer.py``). On a CPU the same values and gradients come from one fused numba kernel
 (:mod:`torchpf.geometry._chamfer_cpu`, :data:`FUSED_CPU`): a refinement step of 4 poses in 3 cameras spends
-~0.4 ms in it against ~1 ms of tensor operations, and the default hybrid tracker's frame takes 73 instead of
+~0.4 ms in it against ~0.8 ms of tensor operations, and the default hybrid tracker's frame takes 73 instead of
 98 ms (BENCHMARKS.md, "Speed of a tracking step"). Other devices run the tensor operations.
 
 Example::
