@@ -224,6 +224,8 @@ class Refiner(nn.Module):
                 return limited(space.decode(y))
 
         b1, b2, eps = 0.9, 0.999, 1e-8
+        # the damping's eps is damping max_j(lr_j rms_j) / lr_d: its per-DOF factor, once per call
+        damp = self.damping / torch.where(lr > 0, lr, 1.0) if self.damping > 0 else None
         m = torch.zeros_like(cur)
         v = torch.zeros_like(cur)
         best = decode(cur)
@@ -248,10 +250,8 @@ class Refiner(nn.Module):
             m.mul_(b1).add_(grad, alpha=1 - b1)
             v.mul_(b2).addcmul_(grad, grad, value=1 - b2)
             denom = v.mul(1.0 / (1 - b2**k)).sqrt_()
-            if self.damping > 0:
-                # eps relative to the pose's largest step-scaled gradient: lr_d eps_d = damping max lr rms
-                scale = (denom * lr).amax(-1, keepdim=True)
-                denom = denom + self.damping * scale / torch.where(lr > 0, lr, 1.0)
+            if damp is not None:
+                denom = denom.addcmul_((denom * lr).amax(-1, keepdim=True), damp)
             denom = denom.add_(eps)
             cur = cur.addcmul(lr, m.div(denom), value=-decay / (1 - b1**k))
             if space is None:

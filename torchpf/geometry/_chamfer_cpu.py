@@ -67,7 +67,8 @@ if AVAILABLE:
 
 def _kernel(pa, pb, ra, rb, valid, image, fg, u, h, cos_c, sin_c, tau, linear, grad, model, cover, jm, jc):
     """Both terms of every image ``g`` and pose ``i``: ``model[g, i]``, ``cover[g, i]`` and, with ``grad``,
-    their gradients ``jm``, ``jc`` (G, N, C, 6) in ``(pa_x, pa_y, pb_x, pb_y, ra, rb)`` of each capsule.
+    their gradients ``jm``, ``jc`` (G, N, C, 6) in ``(pa_x, pa_y, pb_x, pb_y, ra, rb)`` of each capsule
+    (zero-filled by the caller: the cover term adds into ``jc``, and invalid capsules keep 0).
 
     pa, pb (G, N, C, 2), ra, rb (G, N, C), valid (G, N, C) bool, image (G, H, W), fg (G, n, 2); the area
     points' fixed pattern: body ``u``, ``h`` (n_body,), caps ``cos_c``, ``sin_c`` (2, n_cap)."""
@@ -128,8 +129,6 @@ def _kernel(pa, pb, ra, rb, valid, image, fg, u, h, cos_c, sin_c, tau, linear, g
             if grad:
                 inv_W = 1.0 / W_c
                 for c in range(C):
-                    for q in range(6):
-                        jm[g, i, c, q] = 0.0
                     if not valid[g, i, c]:
                         continue
                     ax, ay, ex, ey, L, r_a, r_b = _capsule(pa, pb, ra, rb, g, i, c)
@@ -184,10 +183,6 @@ def _kernel(pa, pb, ra, rb, valid, image, fg, u, h, cos_c, sin_c, tau, linear, g
                     jm[g, i, c, 4] = g_ra
                     jm[g, i, c, 5] = g_rb
             # ---- cover term: (1 / n) sum_j rho(d_model(q_j)) over the foreground samples
-            if grad:
-                for c in range(C):
-                    for q in range(6):
-                        jc[g, i, c, q] = 0.0
             # the nearest capsule of every sample, capsule by capsule (the inner loop over the samples
             # carries no dependency, so it vectorises)
             for j in range(n):
