@@ -10,8 +10,10 @@ so the rows are the per-frame step) and, in one process, the script times per fr
   ``dual_silhouette``, structural random walk, recovery on), the whole :meth:`~torchpf.Tracker.track`
   loop (masks read from disk included); ``apf, no recovery``: the same without the lost-track detector;
 * ``hybrid``: ``filter="hybrid"``, the default of ``track`` (APF layers, then projected Adam on ``K = 4``
-  poses, limb swaps tried); ``hybrid, no recovery``: the same without the lost-track detector (its periodic
-  visual hull); ``hybrid, no limb swaps``: without the swapped candidates (``filter_options={"swaps": ()}``);
+  poses, limb swaps tried; the finished track smoothed, :mod:`torchpf.smooth`, its cost spread over the
+  frames); ``hybrid, no smoothing``: the filter alone (``smooth=False``); ``hybrid, no recovery``: without
+  the lost-track detector (its periodic visual hull); ``hybrid, no limb swaps``: without the swapped
+  candidates (``filter_options={"swaps": ()}``);
 * ``refine``: :class:`~torchpf.refine.Refiner` alone (the hybrid's default: 20 steps, ``K = 4`` poses near
   the truth; ``--refine-steps 10,15`` adds rows with other step counts, for the hybrid too, at the same
   budget) on each frame's fresh observation (its per-frame caches, the despeckled masks and distance
@@ -119,6 +121,7 @@ def measure(
         rows["apf, no recovery"] = _track_row(tracker(filter="apf", recovery=False), seq.path, T, warmup)
     if "hybrid" in paths:
         rows["hybrid"] = _track_row(tracker(filter="hybrid"), seq.path, T, warmup)
+        rows["hybrid, no smoothing"] = _track_row(tracker(filter="hybrid", smooth=False), seq.path, T, warmup)
         rows["hybrid, no recovery"] = _track_row(
             tracker(filter="hybrid", recovery=False), seq.path, T, warmup
         )

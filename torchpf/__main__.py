@@ -101,6 +101,12 @@ def _parser() -> argparse.ArgumentParser:
         help="measure per camera and frame how far the masks' outline lies outside the body's (a "
         "segmentation that fattens or thins the person) and widen or thin the model by it",
     )
+    tr.add_argument(
+        "--no-smooth",
+        action="store_true",
+        help="write the filter's own estimates (each frame's from the frames up to it) instead of the track "
+        "smoothed over the whole sequence (torchpf.smooth, the default with silhouettes)",
+    )
     tr.add_argument("--device", help="cpu or cuda")
     tr.add_argument("--seed", type=int, default=0)
     tr.add_argument("--no-progress", action="store_true")
@@ -324,6 +330,7 @@ def _track(args) -> int:
         ("device", args.device),
         ("recovery", False if args.no_recovery else None),
         ("boundary_offset", True if args.boundary_offset else None),
+        ("smooth", False if args.no_smooth else None),
     ):
         if value is not None:
             kwargs[key] = value

@@ -59,6 +59,33 @@ from torch import Tensor, nn
 __all__ = ["RefineResult", "RefineSpace", "Refiner"]
 
 
+def damping_factor(damping: float, lr: Tensor) -> Tensor | None:
+    """The damping's per-coordinate factor ``damping / lr_d`` (None for plain Adam), once per descent: the
+    damped ``eps`` of :func:`damped_adam_step` is ``damping max_j(lr_j rms_j) / lr_d``."""
+    return damping / torch.where(lr > 0, lr, 1.0) if damping > 0 else None
+
+
+def damped_adam_step(
+    cur: Tensor, grad: Tensor, m: Tensor, v: Tensor, lr: Tensor, damp: Tensor | None, step: int, steps: int
+) -> Tensor:
+    """One projected-Adam step of :class:`Refiner` (Kingma & Ba 2015, with bias correction and the
+    refiner's damping), elementwise over ``cur (..., E)``: updates the moments ``m``, ``v`` in place and
+    returns ``cur - decay lr m_hat / (sqrt(v_hat) + eps_d)``, the step size ``lr (E,)`` decayed linearly to
+    10 % over ``steps``; ``eps_d = damp_d max_j(lr_j sqrt(v_hat_j))`` over the last axis
+    (:func:`damping_factor`; ``damp`` None: plain Adam's 1e-8). In few in-place operations: each costs
+    microseconds at a refinement's sizes."""
+    b1, b2, eps = 0.9, 0.999, 1e-8
+    k = step + 1
+    decay = 1.0 - 0.9 * step / max(1, steps - 1)
+    m.mul_(b1).add_(grad, alpha=1 - b1)
+    v.mul_(b2).addcmul_(grad, grad, value=1 - b2)
+    denom = v.mul(1.0 / (1 - b2**k)).sqrt_()
+    if damp is not None:
+        denom = denom.addcmul_((denom * lr).amax(-1, keepdim=True), damp)
+    denom = denom.add_(eps)
+    return cur.addcmul(lr, m.div(denom), value=-decay / (1 - b1**k))
+
+
 @runtime_checkable
 class RefineSpace(Protocol):
     """Coordinates ``y (..., E)`` in which :class:`Refiner` moves poses ``x (..., D)`` (module docstring).
@@ -223,9 +250,7 @@ class Refiner(nn.Module):
             def decode(y):
                 return limited(space.decode(y))
 
-        b1, b2, eps = 0.9, 0.999, 1e-8
-        # the damping's eps is damping max_j(lr_j rms_j) / lr_d: its per-DOF factor, once per call
-        damp = self.damping / torch.where(lr > 0, lr, 1.0) if self.damping > 0 else None
+        damp = damping_factor(self.damping, lr)
         m = torch.zeros_like(cur)
         v = torch.zeros_like(cur)
         best = decode(cur)
@@ -242,18 +267,7 @@ class Refiner(nn.Module):
             grad = torch.nan_to_num(grad, nan=0.0, posinf=0.0, neginf=0.0)
             if space is not None:
                 grad = space.pullback(cur, grad)
-            # Adam with bias correction, in place and in few operations (each costs microseconds at these
-            # sizes): m <- b1 m + (1 - b1) g, v <- b2 v + (1 - b2) g^2,
-            # x <- x - decay lr (m / (1 - b1^k)) / (sqrt(v / (1 - b2^k)) + eps)
-            k = step + 1
-            decay = 1.0 - 0.9 * step / max(1, self.steps - 1)
-            m.mul_(b1).add_(grad, alpha=1 - b1)
-            v.mul_(b2).addcmul_(grad, grad, value=1 - b2)
-            denom = v.mul(1.0 / (1 - b2**k)).sqrt_()
-            if damp is not None:
-                denom = denom.addcmul_((denom * lr).amax(-1, keepdim=True), damp)
-            denom = denom.add_(eps)
-            cur = cur.addcmul(lr, m.div(denom), value=-decay / (1 - b1**k))
+            cur = damped_adam_step(cur, grad, m, v, lr, damp, step, self.steps)
             if space is None:
                 cur = limited(cur)
         pose = decode(cur)

@@ -168,3 +168,17 @@ def test_track_reports_frames_without_evidence(seq_dir, tmp_path, capsys):
 def test_module_entry_point_help():
     res = subprocess.run([sys.executable, "-m", "torchpf", "track", "--help"], capture_output=True, text=True)
     assert res.returncode == 0 and "--particles" in res.stdout
+
+
+def test_track_smooths_unless_told_not_to(seq_dir, tmp_path):
+    """The default writes the smoothed track; ``--no-smooth`` the filter's own estimates (the tracker's test
+    checks that these are the smoothed run's ``filtered_angles``)."""
+    args = ["track", str(seq_dir), "--skeleton", str(path("human.urdf")), "--filter", "sir"]
+    args += ["--particles", "60", "--no-progress", "--seed", "2"]
+    smoothed, filtered = tmp_path / "smoothed.csv", tmp_path / "filtered.csv"
+    assert main([*args, "--out", str(smoothed)]) == 0
+    assert main([*args, "--out", str(filtered), "--no-smooth"]) == 0
+    a = torch.as_tensor(read_mocap_csv(smoothed)[2])
+    b = torch.as_tensor(read_mocap_csv(filtered)[2])
+    assert a.shape == b.shape == (8, 96) and torch.isfinite(a).all()
+    assert float((a - b).abs().max()) > 1e-4  # the smoother moved the track

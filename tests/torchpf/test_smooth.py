@@ -1,0 +1,181 @@
+"""TrajectorySmoother: the MAP trajectory of a linear Gaussian model against its closed form, windows,
+held DOFs, wrapped angles, non-finite frames, and the tracker's smoothed track."""
+
+import math
+
+import pytest
+import torch
+from torch import nn
+
+from torchpf import Skeleton, metrics
+from torchpf.assets import path
+from torchpf.camera import camera_ring
+from torchpf.io import read_mocap_csv
+from torchpf.smooth import TrajectorySmoother
+from torchpf.synth import synthesize
+from torchpf.tracker import Tracker
+from training.synthetic import generate
+
+R = 0.05  # the quadratic cue's std (rad / m)
+
+
+class Quadratic(nn.Module):
+    """``log p(z_t | x_t) = -|x_t - z_t|^2 / (2 R^2)``: observations of the DOFs themselves."""
+
+    def forward(self, x, obs):  # x (T B, 1, D), obs (T B, D)
+        return -0.5 * (x - obs.unsqueeze(-2)).square().sum(-1) / R**2
+
+
+class QuadraticWithGrad(Quadratic):
+    def log_likelihood_and_grad(self, x, obs):
+        return self(x, obs), -(x - obs.unsqueeze(-2)) / R**2
+
+
+@pytest.fixture(scope="module")
+def skel():
+    return Skeleton.from_urdf(path("human.urdf")).double()
+
+
+def observations(skel, T: int, seed: int = 0) -> torch.Tensor:
+    """(T, D) noisy observations of a smooth trajectory, well inside the joint limits."""
+    g = torch.Generator().manual_seed(seed)
+    lo, hi = skel.lower, skel.upper
+    centre = torch.where(torch.isfinite(lo + hi), (lo + hi) / 2, 0.0)
+    half = torch.where(torch.isfinite(hi - lo), (hi - lo) / 2, 1.0).clamp(max=1.0)
+    t = torch.arange(T, dtype=torch.float64).unsqueeze(-1)
+    phase = torch.rand(len(lo), generator=g, dtype=torch.float64) * 6.0
+    smooth = centre + 0.2 * half * torch.sin(0.2 * t + phase)
+    return smooth + 0.05 * half * torch.randn(T, len(lo), generator=g, dtype=torch.float64)
+
+
+def closed_form(z: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
+    """argmin sum_t |x_t - z_t|^2 / (2 R^2) + sum_t |x_{t+1} - 2 x_t + x_{t-1}|^2 / (2 sigma^2), per DOF: the
+    normal equations (I / R^2 + A^T A / sigma_d^2) x_d = z_d / R^2, A the second differences."""
+    T = len(z)
+    A = torch.zeros(T - 2, T, dtype=torch.float64)
+    for k in range(T - 2):
+        A[k, k : k + 3] = torch.tensor([1.0, -2.0, 1.0], dtype=torch.float64)
+    eye = torch.eye(T, dtype=torch.float64)
+    H = eye / R**2 + (A.T @ A).unsqueeze(0) / sigma.square().view(-1, 1, 1)  # (D, T, T)
+    return torch.linalg.solve(H, (z.T / R**2).unsqueeze(-1)).squeeze(-1).T
+
+
+@pytest.mark.parametrize("cue", [Quadratic, QuadraticWithGrad], ids=["autograd", "own_gradient"])
+def test_linear_gaussian_map_trajectory_matches_the_normal_equations(skel, cue):
+    """With a quadratic cue the energy is that of a linear Gaussian state-space model (random-acceleration
+    prior, direct observations): its minimiser (the Kalman smoother's mean) solves a linear system."""
+    T, sigma = 30, 0.02
+    z = observations(skel, T)
+    smoother = TrajectorySmoother(skel, cue=cue(), sigma=sigma, steps=600, window=64)
+    out = smoother(z, list(z))  # started at the observations
+    free = skel.lower < skel.upper
+    want = closed_form(z, torch.full((z.shape[1],), sigma, dtype=torch.float64))
+    assert float((out.x - want)[:, free].abs().max()) < 1e-4
+    assert torch.equal(out.x[:, ~free], z[:, ~free].clamp(skel.lower[~free], skel.upper[~free]))
+    assert float(out.loss) < float(out.loss_before) and out.windows == 1
+    # the prior did its work: the smoothed track is closer to the normal equations' than the data are
+    assert float((z - want)[:, free].abs().max()) > 0.05
+
+
+def test_windows_agree_with_one_window(skel):
+    """A long sequence in overlapping windows (each anchored on the one before) ends within a few mrad of
+    the whole sequence optimised at once."""
+    T, sigma = 70, 0.02
+    z = observations(skel, T, seed=1)
+    whole = TrajectorySmoother(skel, cue=QuadraticWithGrad(), sigma=sigma, steps=600, window=128)(z, list(z))
+    windowed = TrajectorySmoother(skel, cue=QuadraticWithGrad(), sigma=sigma, steps=600, window=24, overlap=8)
+    out = windowed(z, list(z))
+    assert out.windows == 4  # frames [0, 24), [16, 40), [32, 56), [48, 70)
+    assert float((out.x - whole.x).abs().max()) < 1e-2  # 4.6e-3 here
+    # what makes them agree: each window re-optimises the last frames of the one before with their future
+    bare = TrajectorySmoother(skel, cue=QuadraticWithGrad(), sigma=sigma, steps=600, window=24, overlap=2)
+    assert float((bare(z, list(z)).x - whole.x).abs().max()) > 0.05  # 0.08 here
+
+
+def test_held_dofs_and_non_finite_frames(skel):
+    """A DOF with sigma 0 stays where the track put it; a NaN frame stays NaN and splits the sequence."""
+    T = 20
+    z = observations(skel, T, seed=2)
+    sigma = torch.full((z.shape[1],), 0.02, dtype=torch.float64)
+    held = 10
+    sigma[held] = 0.0
+    x = z + 0.01
+    x[7] = math.nan
+    out = TrajectorySmoother(skel, cue=QuadraticWithGrad(), sigma=sigma, steps=50)(x, list(z))
+    assert torch.isnan(out.x[7]).all()
+    finite = torch.ones(T, dtype=torch.bool)
+    finite[7] = False
+    assert torch.isfinite(out.x[finite]).all()
+    assert torch.equal(out.x[finite, held], x[finite, held])
+    assert out.windows == 2  # [0, 7) and [8, 20)
+
+
+@pytest.mark.parametrize("cue", [Quadratic, QuadraticWithGrad], ids=["autograd", "own_gradient"])
+def test_two_frames_have_no_prior(skel, cue):
+    """Too short for an acceleration: each frame goes to its own observation."""
+    z = observations(skel, 2, seed=3)
+    out = TrajectorySmoother(skel, cue=cue(), sigma=0.02, steps=600)(z + 0.02, list(z))
+    free = skel.lower < skel.upper
+    assert float((out.x - z)[:, free].abs().max()) < 1e-4
+
+
+def test_the_prior_wraps_revolute_angles(skel):
+    """A joint turning at constant speed through +-pi has no acceleration: the prior reads wrapped steps."""
+    smoother = TrajectorySmoother(skel, cue=Quadratic(), sigma=0.01)
+    d = int(torch.nonzero(skel.dof_revolute)[0])
+    x = torch.zeros(6, len(skel.lower), dtype=torch.float64)
+    turning = torch.arange(6, dtype=torch.float64) * 0.3 + 2.5  # 2.5 .. 4.0 rad
+    x[:, d] = torch.atan2(torch.sin(turning), torch.cos(turning))  # jumps from ~+pi to ~-pi
+    assert float(smoother.prior_energy(x)) < 1e-20
+    x[3, d] += 0.01
+    # one frame off by 0.01 rad: accelerations 0.01, -0.02, 0.01 at frames 2, 3, 4
+    assert float(smoother.prior_energy(x)) == pytest.approx(0.5 * 6e-4 / 0.01**2, rel=1e-9)
+
+
+def test_bad_arguments(skel):
+    with pytest.raises(ValueError, match="sigma"):
+        TrajectorySmoother(skel, cue=Quadratic(), sigma=torch.ones(3))
+    with pytest.raises(ValueError, match="window"):
+        TrajectorySmoother(skel, cue=Quadratic(), window=8, overlap=8)
+    smoother = TrajectorySmoother(skel, cue=Quadratic())
+    with pytest.raises(ValueError, match="observations"):
+        smoother(torch.zeros(5, len(skel.lower), dtype=torch.float64), [None] * 4)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    skel = Skeleton.from_urdf(path("human.urdf"))
+    angles = generate("walk", 24, 30.0, seed=1).angles[::2]  # 12 frames at 15 Hz
+    angles[:, [0, 2]] -= angles[0, [0, 2]].clone()
+    cams = camera_ring(3, radius=4.0, width=80, height_px=60, target=(0.0, -0.3, 0.9))
+    return skel, cams, synthesize(skel, angles, cams, fps=15.0), angles
+
+
+def test_the_tracker_smooths_its_track_and_writes_it(scene, tmp_path):
+    """``track``'s default on silhouettes: the smoothed track is returned and written, the filter's own
+    estimates kept in ``filtered_angles``; the smoother lowered its energy, so the track changed, and stays
+    about as close to the truth (12 frames of clean renders: a check of the plumbing, not of accuracy)."""
+    skel, cams, seq, angles = scene
+    tracker = Tracker(skel, cams, n_particles=200, progress=False)
+    out = tmp_path / "track.csv"
+    result = tracker.track(seq, seed=0, calibrate=False, out=out)
+    assert result.filtered_angles is not None and result.filtered_angles.shape == result.angles.shape
+    assert torch.isfinite(result.angles).all()
+    assert float((result.angles - result.filtered_angles).abs().max()) > 1e-4
+    _, _, rows = read_mocap_csv(out, expected_dof_names=skel.dof_names)
+    assert torch.allclose(torch.as_tensor(rows), result.angles, atol=1e-6)
+    truth = skel.fk(angles)
+    smoothed = float(metrics.mpjpe(truth, skel.fk(result.angles)))
+    filtered = float(metrics.mpjpe(truth, skel.fk(result.filtered_angles)))
+    assert smoothed < 1.2 * filtered, (smoothed, filtered)
+    off = Tracker(skel, cams, n_particles=200, progress=False, smooth=False).track(
+        seq, seed=0, calibrate=False
+    )
+    assert off.filtered_angles is None
+    assert torch.equal(off.angles, result.filtered_angles)  # the same filter run underneath
+
+
+def test_smoothing_needs_silhouettes_or_a_cue(scene):
+    skel, cams, _, _ = scene
+    with pytest.raises(ValueError, match="smooth"):
+        Tracker(skel, None, likelihood="pointcloud", smooth=True, progress=False)
