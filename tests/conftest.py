@@ -16,6 +16,15 @@ torch.set_num_threads(1)
 HAS_CUDA = torch.cuda.is_available()
 
 
+@pytest.fixture(autouse=True)
+def _one_torch_thread():
+    """Back to one torch thread after every test: a command line run in-process (``main([...])``) sets
+    its own (all cores outside CI), and the worker's later tests then fought the other worker for the cores
+    (``test_auto_init_finds_the_pose`` took 114 s in the suite, 15 s alone)."""
+    yield
+    torch.set_num_threads(1)
+
+
 def pytest_collection_modifyitems(config, items):
     if HAS_CUDA:
         return

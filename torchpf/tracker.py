@@ -699,21 +699,23 @@ class Tracker(nn.Module):
                 raise ValueError(
                     f"{where}: no frame has evidence (every mask is empty or missing, no points or keypoints)"
                 )
-        except BaseException:
+            per_frame = buffer.result()
+            filtered = None
+            if self.smooth if self.smooth is not None else self._reads_silhouettes():
+                filtered = per_frame["estimates"]
+                moved = _Frames(len(frames), lambda t: _to_device(frames[t], self.device, self.dtype))
+                per_frame["estimates"] = self._smoother(fps)(filtered, moved).x
+        except BaseException:  # the filter's rows so far stay in OUT.partial
             if writer is not None:
                 writer.abort()
             raise
-        if writer is not None:
+        if writer is not None and filtered is not None:  # OUT gets the smoothed track, written atomically
+            writer.abort()
+            times = torch.arange(len(filtered), dtype=torch.float64) / fps
+            write_mocap_csv(out, self.skeleton.dof_names, per_frame["estimates"].cpu().double(), times)
+            os.remove(writer.partial)
+        elif writer is not None:
             writer.close()
-        per_frame = buffer.result()
-        filtered = None
-        if self.smooth if self.smooth is not None else self._reads_silhouettes():
-            filtered = per_frame["estimates"]
-            silhouettes = _Frames(len(frames), lambda t: _to_device(frames[t], self.device, self.dtype))
-            per_frame["estimates"] = self._smoother(fps)(filtered, silhouettes).x
-            if out is not None:  # the file holds the smoothed track, replaced atomically
-                times = torch.arange(len(filtered), dtype=torch.float64) / fps
-                write_mocap_csv(out, self.skeleton.dof_names, per_frame["estimates"].cpu().double(), times)
         seconds = time.perf_counter() - t0
         stats = {k[len("stats/") :]: v for k, v in per_frame.items() if k.startswith("stats/")}
         if isinstance(self.likelihood, TemperedLikelihood):

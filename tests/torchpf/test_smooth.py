@@ -1,6 +1,7 @@
 """TrajectorySmoother: the MAP trajectory of a linear Gaussian model against its closed form, windows,
 held DOFs, wrapped angles, non-finite frames, and the tracker's smoothed track."""
 
+import copy
 import math
 
 import pytest
@@ -77,15 +78,16 @@ def test_linear_gaussian_map_trajectory_matches_the_normal_equations(skel, cue):
     assert float((z - want)[:, free].abs().max()) > 0.05
 
 
-def test_windows_agree_with_one_window(skel):
+def test_windows_agree_with_one_window(skel, device):
     """A long sequence in overlapping windows (each anchored on the one before) ends within a few mrad of
-    the whole sequence optimised at once."""
+    the whole sequence optimised at once; on the poses' device."""
     T, sigma = 70, 0.02
-    z = observations(skel, T, seed=1)
+    z = observations(skel, T, seed=1).to(device)
+    skel = copy.deepcopy(skel).to(device)  # the module's fixture stays on the CPU
     whole = TrajectorySmoother(skel, cue=QuadraticWithGrad(), sigma=sigma, steps=600, window=128)(z, list(z))
     windowed = TrajectorySmoother(skel, cue=QuadraticWithGrad(), sigma=sigma, steps=600, window=24, overlap=8)
     out = windowed(z, list(z))
-    assert out.windows == 4  # frames [0, 24), [16, 40), [32, 56), [48, 70)
+    assert out.windows == 4 and out.x.device.type == device.type  # [0, 24), [16, 40), [32, 56), [48, 70)
     assert float((out.x - whole.x).abs().max()) < 1e-2  # 4.6e-3 here
     # what makes them agree: each window re-optimises the last frames of the one before with their future
     bare = TrajectorySmoother(skel, cue=QuadraticWithGrad(), sigma=sigma, steps=600, window=24, overlap=2)
@@ -164,6 +166,7 @@ def test_the_tracker_smooths_its_track_and_writes_it(scene, tmp_path):
     assert float((result.angles - result.filtered_angles).abs().max()) > 1e-4
     _, _, rows = read_mocap_csv(out, expected_dof_names=skel.dof_names)
     assert torch.allclose(torch.as_tensor(rows), result.angles, atol=1e-6)
+    assert not (tmp_path / "track.csv.partial").exists()
     truth = skel.fk(angles)
     smoothed = float(metrics.mpjpe(truth, skel.fk(result.angles)))
     filtered = float(metrics.mpjpe(truth, skel.fk(result.filtered_angles)))
