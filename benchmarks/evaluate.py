@@ -411,6 +411,7 @@ def make_tracker(seq: EvalSequence, name: str, budget: int, cfg: EvalConfig, dyn
         n_particles=budget,
         filter_options=options,
         progress=False,
+        smooth=False,  # Fontmarty's protocol compares the filters' own estimates, not a smoothed track
     )
 
 
@@ -933,6 +934,8 @@ FOREIGN_SETUPS: dict[str, Callable[..., Any]] = {
     "calibrated_hybrid_particles": calibrated_setup(
         filter="hybrid", filter_options={"refine_mode": "particles", "refine_prior": True}
     ),
+    # `track`'s defaults without the smoothing of the finished track (torchpf.smooth): the filter alone
+    "no_smooth": tracker_setup(smooth=False),
     # ---- AFTER (issue 11): add the new configurations here, one entry each, e.g.
     # "calibrated": fit the body (torchpf.calibrate.fit_body on the first frames, pose from truth.csv
     #               frame 0), then track with the fitted skeleton;

@@ -59,6 +59,28 @@ from torch import Tensor, nn
 __all__ = ["RefineResult", "RefineSpace", "Refiner"]
 
 
+def descent_setup(
+    skeleton, cameras, cue, cue_options, steps: int, lr_rotation: float, lr_translation: float, damping: float
+) -> tuple[nn.Module, Tensor]:
+    """The checked arguments of a descent on a cue (:class:`Refiner`,
+    :class:`~torchpf.smooth.TrajectorySmoother`): the cue module (a name of
+    :data:`~torchpf.likelihoods.LIKELIHOODS` built with ``cue_options``) and the per-DOF Adam step ``(D,)``
+    float64, ``lr_rotation`` (rad) for revolute DOFs, ``lr_translation`` (m) for prismatic ones, 0 for a DOF
+    fixed by its limits."""
+    if isinstance(cue, str):
+        from torchpf.likelihoods import LIKELIHOODS
+
+        cue = LIKELIHOODS.get(cue)(skeleton, cameras, **dict(cue_options or {}))
+    if steps < 0:
+        raise ValueError(f"steps must be >= 0, got {steps}")
+    if not (lr_rotation > 0 and lr_translation > 0):
+        raise ValueError("lr_rotation and lr_translation must be positive")
+    if not damping >= 0:
+        raise ValueError(f"damping must be >= 0, got {damping}")
+    lr = torch.where(skeleton.dof_revolute, lr_rotation, lr_translation).double()
+    return cue, torch.where(skeleton.lower >= skeleton.upper, 0.0, lr)
+
+
 def damping_factor(damping: float, lr: Tensor) -> Tensor | None:
     """The damping's per-coordinate factor ``damping / lr_d`` (None for plain Adam), once per descent: the
     damped ``eps`` of :func:`damped_adam_step` is ``damping max_j(lr_j rms_j) / lr_d``."""
@@ -151,22 +173,13 @@ class Refiner(nn.Module):
         damping: float = 0.1,
     ):
         super().__init__()
-        if isinstance(cue, str):
-            from torchpf.likelihoods import LIKELIHOODS
-
-            cue = LIKELIHOODS.get(cue)(skeleton, cameras, **dict(cue_options or {}))
-        if steps < 0:
-            raise ValueError(f"steps must be >= 0, got {steps}")
-        if not (lr_rotation > 0 and lr_translation > 0):
-            raise ValueError("lr_rotation and lr_translation must be positive")
-        if not damping >= 0:
-            raise ValueError(f"damping must be >= 0, got {damping}")
+        self.cue, lr = descent_setup(
+            skeleton, cameras, cue, cue_options, steps, lr_rotation, lr_translation, damping
+        )
         self.damping = float(damping)
         self.skeleton = skeleton
-        self.cue = cue
         self.steps = int(steps)
-        lr = torch.where(skeleton.dof_revolute, lr_rotation, lr_translation).double()
-        fixed = skeleton.lower >= skeleton.upper
+        fixed = lr == 0
         if frozen is not None:
             frozen = torch.as_tensor(frozen, dtype=torch.bool)
             if frozen.shape != fixed.shape:

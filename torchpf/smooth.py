@@ -50,7 +50,7 @@ import torch
 from torch import Tensor, nn
 
 from torchpf.observations import Silhouettes
-from torchpf.refine import damped_adam_step, damping_factor
+from torchpf.refine import damped_adam_step, damping_factor, descent_setup
 
 __all__ = ["SmoothResult", "TrajectorySmoother"]
 
@@ -107,16 +107,9 @@ class TrajectorySmoother(nn.Module):
         overlap: int = 8,
     ):
         super().__init__()
-        if isinstance(cue, str):
-            from torchpf.likelihoods import LIKELIHOODS
-
-            cue = LIKELIHOODS.get(cue)(skeleton, cameras, **dict(cue_options or {}))
-        if steps < 0:
-            raise ValueError(f"steps must be >= 0, got {steps}")
-        if not (lr_rotation > 0 and lr_translation > 0):
-            raise ValueError("lr_rotation and lr_translation must be positive")
-        if not damping >= 0:
-            raise ValueError(f"damping must be >= 0, got {damping}")
+        self.cue, lr = descent_setup(
+            skeleton, cameras, cue, cue_options, steps, lr_rotation, lr_translation, damping
+        )
         if not (overlap >= 2 and window > overlap):
             raise ValueError(f"need window > overlap >= 2, got window={window}, overlap={overlap}")
         D = len(skeleton.lower)
@@ -126,12 +119,9 @@ class TrajectorySmoother(nn.Module):
         if sigma.shape != (D,) or not bool(torch.isfinite(sigma).all()) or bool((sigma < 0).any()):
             raise ValueError(f"sigma must be a float or a ({D},) tensor of finite values >= 0")
         self.skeleton = skeleton
-        self.cue = cue
         self.steps, self.window, self.overlap = int(steps), int(window), int(overlap)
         self.damping = float(damping)
-        lr = torch.where(skeleton.dof_revolute, lr_rotation, lr_translation).double()
-        held = (skeleton.lower >= skeleton.upper) | (sigma == 0)
-        self.register_buffer("lr", torch.where(held, 0.0, lr))
+        self.register_buffer("lr", torch.where(sigma == 0, 0.0, lr.to(sigma.device)))
         # 1 / sigma^2 of the prior; a held DOF has no step, so its weight only needs to be finite
         self.register_buffer("precision", torch.where(sigma > 0, sigma.clamp_min(1e-12) ** -2, 0.0))
 
