@@ -184,8 +184,8 @@ class TrajectorySmoother(nn.Module):
         :class:`~torchpf.observations.Silhouettes` ``(..., V, H, W)`` or the
         :class:`~torchpf.observations.Frame` holding them, or a tensor ``(..., E)`` for a cue that reads
         ``(T B, E)``; read one window at a time, so a lazy sequence works). A frame whose silhouettes are
-        ``None`` has only the prior. Non-finite frames are
-        left as they are and cut the trajectory into pieces smoothed on their own."""
+        ``None`` has only the prior. Non-finite frames are left as they are and cut the trajectory into
+        pieces smoothed on their own."""
         x = torch.as_tensor(x)
         if x.dim() < 2:
             raise ValueError(f"x must be (T, ..., D), got shape {tuple(x.shape)}")
