@@ -352,11 +352,16 @@ def _track(args) -> int:
     result = tracker.track(seq, seed=args.seed, init=init, out=args.out, calibrate=calibrate)
     n_failed = int(result.failed.sum())
     blind = result.no_evidence.nonzero().flatten().tolist()
+    smoothed = (
+        " (smoothed; --no-smooth for the filter's own estimates)"
+        if result.filtered_angles is not None
+        else ""
+    )
     print(
         f"tracked {len(result.angles)} frames with {tracker.filter_name} ({tracker.n_particles} likelihood "
         f"evaluations/frame) in {result.seconds:.1f} s: mean ESS {float(result.ess.mean()):.1f}, "
         f"{n_failed} failed frames, {len(blind)} frames without evidence, log-evidence "
-        f"{result.log_evidence:.1f}; wrote {args.out}"
+        f"{result.log_evidence:.1f}; wrote {args.out}{smoothed}"
     )
     from torchpf.sequence import format_frames
 

@@ -170,14 +170,16 @@ def test_module_entry_point_help():
     assert res.returncode == 0 and "--particles" in res.stdout
 
 
-def test_track_smooths_unless_told_not_to(seq_dir, tmp_path):
+def test_track_smooths_unless_told_not_to(seq_dir, tmp_path, capsys):
     """The default writes the smoothed track; ``--no-smooth`` the filter's own estimates (the tracker's test
     checks that these are the smoothed run's ``filtered_angles``)."""
     args = ["track", str(seq_dir), "--skeleton", str(path("human.urdf")), "--filter", "sir"]
     args += ["--particles", "60", "--no-progress", "--seed", "2"]
     smoothed, filtered = tmp_path / "smoothed.csv", tmp_path / "filtered.csv"
     assert main([*args, "--out", str(smoothed)]) == 0
+    assert "(smoothed; --no-smooth" in capsys.readouterr().out
     assert main([*args, "--out", str(filtered), "--no-smooth"]) == 0
+    assert "smoothed" not in capsys.readouterr().out
     a = torch.as_tensor(read_mocap_csv(smoothed)[2])
     b = torch.as_tensor(read_mocap_csv(filtered)[2])
     assert a.shape == b.shape == (8, 96) and torch.isfinite(a).all()
