@@ -60,9 +60,19 @@ def _capsule(pa, pb, ra, rb, g, i, c):
     return ax, ay, ex, ey, max(math.hypot(ex, ey), 1e-9), ra[g, i, c], rb[g, i, c]
 
 
+def _on_axis(dx, dy, ex, ey, inv_ee):
+    """A point ``(dx, dy)`` from the axis' start, on the axis ``(ex, ey)`` (``inv_ee = 1 / |e|^2``, 0 for a
+    point-like axis): its parameter ``s``, ``t`` = ``s`` clamped to [0, 1], and its offset ``(qx, qy)`` from
+    the nearest axis point (``_nearest_axis_distance`` of the tensor version)."""
+    s = (dx * ex + dy * ey) * inv_ee
+    t = min(max(s, 0.0), 1.0)
+    return s, t, dx - t * ex, dy - t * ey
+
+
 if AVAILABLE:
     _lookup = numba.njit(cache=True, inline="always")(_lookup)
     _capsule = numba.njit(cache=True, inline="always")(_capsule)
+    _on_axis = numba.njit(cache=True, inline="always")(_on_axis)
 
 
 def _kernel(pa, pb, ra, rb, valid, image, fg, u, h, cos_c, sin_c, tau, linear, grad, model, cover, jm, jc):
@@ -196,10 +206,7 @@ def _kernel(pa, pb, ra, rb, valid, image, fg, u, h, cos_c, sin_c, tau, linear, g
                 inv_ee = 1.0 / ee if ee > 1e-12 else 0.0
                 dr = r_b - r_a
                 for j in range(n):
-                    dx, dy = fg[g, j, 0] - ax, fg[g, j, 1] - ay
-                    s = (dx * ex + dy * ey) * inv_ee
-                    t = min(max(s, 0.0), 1.0)
-                    qx, qy = dx - t * ex, dy - t * ey
+                    _, t, qx, qy = _on_axis(fg[g, j, 0] - ax, fg[g, j, 1] - ay, ex, ey, inv_ee)
                     sd = math.sqrt(max(qx * qx + qy * qy, 1e-12)) - (r_a + t * dr)
                     if sd < best[j]:
                         best[j] = sd
@@ -220,9 +227,7 @@ def _kernel(pa, pb, ra, rb, valid, image, fg, u, h, cos_c, sin_c, tau, linear, g
                 dx, dy = qx0 - ax, qy0 - ay
                 ee = ex * ex + ey * ey
                 inv_ee = 1.0 / ee if ee > 1e-12 else 0.0
-                s = (dx * ex + dy * ey) * inv_ee
-                t = min(max(s, 0.0), 1.0)
-                qx, qy = dx - t * ex, dy - t * ey
+                s, t, qx, qy = _on_axis(dx, dy, ex, ey, inv_ee)
                 r_inv = 1.0 / math.sqrt(max(qx * qx + qy * qy, 1e-12))
                 ux, uy = qx * r_inv, qy * r_inv
                 g_d = (dc + a) * (2.0 / n)
