@@ -365,6 +365,13 @@ def _track(args) -> int:
     )
     from torchpf.sequence import format_frames
 
+    free = skel.free_rotations()
+    if len(free) > len(skel.dof_names) // 4:  # a converted BVH: no joint limits at all
+        print(
+            f"note: {len(free)} joint rotations of {args.skeleton} have no limits (BVH has none), so the "
+            "track may bend a knee sideways or cross the legs; 'python -m training fit-limits' learns "
+            "limits from mocap of the action (foreign renders, noisy masks: 84 -> 62 mm, BENCHMARKS.md)"
+        )
     if blind:
         print(f"frames without evidence (no usable mask, point or keypoint): {format_frames(blind)}")
     if "action_fallback" in result.stats:  # a learned prior says when it gave up on the sequence

@@ -54,6 +54,7 @@ from torchpf.kinematics.urdf import (
     parse_urdf_xml,
     read_urdf_text,
     rebody_urdf,
+    relimit_urdf,
 )
 
 _REVOLUTE, _PRISMATIC = "revolute", "prismatic"
@@ -578,6 +579,22 @@ class Skeleton(nn.Module):
         joint types (never from names): ``tree.dof_revolute``."""
         return self.tree.dof_revolute.clone()
 
+    @property
+    def posture_dofs(self) -> torch.Tensor:
+        """(D,) bool: the revolute DOFs that are not the root joint's (the root's place where the person is
+        and which way they face; these shape the body), from the tree (never from names)."""
+        joint = self.tree.dof_joint
+        root = (joint >= 0) & (self.tree.parents[joint.clamp_min(0)] < 0)  # -1: a DOF below every joint
+        return self.dof_revolute & ~root
+
+    def free_rotations(self, full_turn: float = 1.9 * math.pi) -> list[str]:
+        """Names of the :attr:`posture_dofs` whose limits span at least ``full_turn`` rad (or are absent):
+        a skeleton converted from BVH has only those (BVH has no limits; ``python -m training fit-limits``
+        learns them from mocap)."""
+        span = (self.upper - self.lower).cpu()
+        free = self.posture_dofs.cpu() & ~(span < full_turn)
+        return [self.dof_names[d] for d in torch.nonzero(free).flatten().tolist()]
+
     def clamp(self, theta: torch.Tensor) -> torch.Tensor:
         """``theta`` (..., D) clamped into ``[lower, upper]`` per DOF (differentiable inside the limits)."""
         lo = self.lower.to(device=theta.device, dtype=theta.dtype)
@@ -679,6 +696,32 @@ class Skeleton(nn.Module):
         :meth:`from_urdf` give it back as it is.
         """
         xml = self._body_xml(radii, scale, lengths)
+        return Skeleton(build_chain(xml, self.source), xml, joint_names=self.joint_names, source=self.source)
+
+    def with_limits(self, lower=None, upper=None) -> Skeleton:
+        """A new skeleton with the same body and other joint limits: ``lower``, ``upper`` (D,) tensors in
+        :attr:`dof_names` order (rad or m; ``+-inf`` or NaN entries keep this skeleton's limit), or None to
+        keep them all. Written into the URDF (:func:`~torchpf.kinematics.urdf.relimit_urdf`), so
+        :meth:`save_urdf` keeps them; :func:`training.limits.fit_limits` learns them from mocap."""
+        D = len(self.dof_names)
+        new = {}
+        for name, given, own in (("lower", lower, self.lower), ("upper", upper, self.upper)):
+            given = own if given is None else torch.as_tensor(given, dtype=torch.float64).reshape(-1).cpu()
+            if given.shape != (D,):
+                raise ValueError(f"with_limits: {name} must have shape ({D},), got {tuple(given.shape)}")
+            new[name] = torch.where(torch.isfinite(given), given, own.cpu())
+        bad = [self.dof_names[d] for d in torch.nonzero(new["lower"] > new["upper"]).flatten().tolist()]
+        if bad:
+            raise ValueError(f"with_limits: lower > upper for {bad[:5]}")
+        changed = (new["lower"] != self.lower.cpu()) | (new["upper"] != self.upper.cpu())
+        finite = torch.isfinite(new["lower"]) & torch.isfinite(new["upper"])
+        limits = {
+            self.dof_names[d]: (float(new["lower"][d]), float(new["upper"][d]))
+            for d in torch.nonzero(changed & finite).flatten().tolist()
+        }
+        if bool((changed & ~finite).any()):
+            raise ValueError("with_limits: a DOF given a limit needs finite limits on both sides")
+        xml = relimit_urdf(self._body_xml(), limits, source=self.source)
         return Skeleton(build_chain(xml, self.source), xml, joint_names=self.joint_names, source=self.source)
 
     def save_urdf(self, path: str | os.PathLike) -> None:

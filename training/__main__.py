@@ -6,6 +6,7 @@ Commands::
     python -m training fit --action walk --skeleton S.urdf --out walk.npz DATA/*.csv
     python -m training inspect walk.npz --out DIR                  # -> DIR/synchronisation.png, ...; curve
     python -m training fit-dynamics DATA/*.csv --skeleton S.urdf --out dyn.npz [--fps 30]
+    python -m training fit-limits DATA/*.csv --skeleton S.urdf --out limited.urdf [--margin 0.15]
     python -m training export TRACK.csv --skeleton S.urdf --out track.bvh [--scale S]
 
 ``convert`` turns a BVH file into a torchpf skeleton (URDF, z up, metres) and a mocap CSV of its angle
@@ -13,7 +14,9 @@ tracks in the skeleton's ``dof_names`` order (see :mod:`training.mocap`). ``fit`
 (Rius eq. 1-3, :mod:`training.fit`) from performances of one action and saves it as ``.npz``
 (:mod:`priors.action`); ``inspect`` prints its summary and saves the plots of Rius Fig. 1
 (:mod:`training.plots`). ``fit-dynamics`` learns per-DOF step stds and the constant-velocity α
-(:mod:`training.dynamics`) for ``python -m torchpf track --dynamics dyn.npz``. ``export`` writes a track (or
+(:mod:`training.dynamics`) for ``python -m torchpf track --dynamics dyn.npz``. ``fit-limits`` writes the
+skeleton again with joint limits learned from the performances' range of motion (:mod:`training.limits`; a
+converted BVH has none) for ``track --skeleton limited.urdf``. ``export`` writes a track (or
 any mocap CSV of the skeleton) as BVH for Blender / MotionBuilder (:func:`training.mocap.save_bvh`). Bad
 input ends with a one-line ``error:`` message on stderr and exit status 2, Ctrl-C with ``interrupted`` and
 status 130; every command takes ``--threads N`` and ``--debug`` (:mod:`torchpf.cli`). Each command is one
@@ -218,6 +221,27 @@ def _fit_dynamics(args: argparse.Namespace) -> int:
     return 0
 
 
+def _fit_limits(args: argparse.Namespace) -> int:
+    from torchpf.skeleton import Skeleton
+    from training.limits import fit_limits
+    from training.mocap import load_csv
+
+    if args.out.suffix != ".urdf":
+        raise ValueError(f"--out must name a .urdf file, got {str(args.out)!r}")
+    if args.skip_first < 0:
+        raise ValueError(f"--skip-first must be >= 0, got {args.skip_first}")
+    if not (math.isfinite(args.margin) and args.margin >= 0):
+        raise ValueError(f"--margin must be a number of radians >= 0, got {args.margin}")
+    check_output_file(args.out)
+    skeleton = Skeleton.from_urdf(args.skeleton)
+    motions = [load_csv(p, dof_names=skeleton.dof_names)[args.skip_first :] for p in args.files]
+    lower, upper, report = fit_limits(motions, skeleton, margin=args.margin)
+    skeleton.with_limits(lower, upper).save_urdf(args.out)
+    print(f"wrote {args.out}: joint limits from {len(args.files)} files, margin {args.margin:g} rad")
+    print(report.summary())
+    return 0
+
+
 def _export(args: argparse.Namespace) -> int:
     from torchpf.skeleton import Skeleton
     from training.mocap import load_csv, save_bvh
@@ -366,6 +390,30 @@ def build_parser() -> argparse.ArgumentParser:
     )
     add_runtime_options(dyn)
     dyn.set_defaults(func=_fit_dynamics)
+
+    lim = commands.add_parser(
+        "fit-limits",
+        help="mocap CSVs -> the skeleton with joint limits from their range of motion (.urdf)",
+        description="Learn per-DOF joint limits from the range of motion of mocap CSVs of a skeleton (the "
+        "shortest arc holding every frame, widened by --margin; the root's DOFs and prismatic ones keep "
+        "theirs) and write the skeleton with them as URDF for "
+        "'python -m torchpf track --skeleton FILE.urdf'. Learn them from the actions you will track.",
+    )
+    lim.add_argument("files", nargs="+", metavar="FILE.csv", help="performances (mocap CSV)")
+    lim.add_argument("--skeleton", required=True, metavar="S.urdf", help="skeleton the CSVs must match")
+    lim.add_argument("--out", required=True, type=Path, metavar="LIMITED.urdf", help="output file")
+    lim.add_argument(
+        "--margin", type=float, default=0.15, metavar="RAD", help="widening of each range on each side (0.15)"
+    )
+    lim.add_argument(
+        "--skip-first",
+        type=int,
+        default=0,
+        metavar="N",
+        help="drop the first N frames of every file (CMU conversions: 1, a rest pose)",
+    )
+    add_runtime_options(lim)
+    lim.set_defaults(func=_fit_limits)
 
     export = commands.add_parser(
         "export",

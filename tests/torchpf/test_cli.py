@@ -46,6 +46,7 @@ def test_track_then_evaluate(seq_dir, tmp_path, capsys):
     assert main(args) == 0
     printed = capsys.readouterr().out
     assert "tracked 8 frames with sir" in printed and "RMSE" in printed
+    assert "have no limits" not in printed  # the shipped body has joint limits
     skel = Skeleton.from_urdf(path("human.urdf"))
     names, times, values = read_mocap_csv(out, expected_dof_names=skel.dof_names)
     assert values.shape == (8, 96) and times[1] == pytest.approx(1 / 15)
@@ -184,3 +185,20 @@ def test_track_smooths_unless_told_not_to(seq_dir, tmp_path, capsys):
     b = torch.as_tensor(read_mocap_csv(filtered)[2])
     assert a.shape == b.shape == (8, 96) and torch.isfinite(a).all()
     assert float((a - b).abs().max()) > 1e-4  # the smoother moved the track
+
+
+def test_track_says_when_the_skeleton_has_no_joint_limits(seq_dir, tmp_path, capsys):
+    """A skeleton without limits (what a BVH converts to) gets a one-line note on fit-limits."""
+    import math
+
+    human = Skeleton.from_urdf(path("human.urdf"))
+    free = torch.where(human.posture_dofs, 2 * math.pi, torch.nan)
+    unlimited = human.with_limits(-free, free)
+    assert len(unlimited.free_rotations()) == int(human.posture_dofs.sum()) and not human.free_rotations()
+    urdf = tmp_path / "unlimited.urdf"
+    unlimited.save_urdf(urdf)
+    out = tmp_path / "track.csv"
+    args = ["track", str(seq_dir), "--skeleton", str(urdf), "--out", str(out), "--filter", "sir"]
+    assert main([*args, "--particles", "30", "--no-smooth", "--no-progress"]) == 0
+    printed = capsys.readouterr().out
+    assert "have no limits" in printed and "python -m training fit-limits" in printed

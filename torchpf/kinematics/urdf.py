@@ -278,6 +278,39 @@ def rebody_urdf(
     return '<?xml version="1.0"?>\n' + ET.tostring(root, encoding="unicode") + "\n"
 
 
+def relimit_urdf(
+    xml: str, limits: Mapping[str, tuple[float, float]], *, source: str = "<urdf string>"
+) -> str:
+    """The URDF text ``xml`` with other joint limits: ``limits`` maps a URDF joint name (a DOF of
+    :attr:`~torchpf.skeleton.Skeleton.dof_names`) to ``(lower, upper)`` (rad or m, ``lower <= upper``,
+    finite). A ``continuous`` joint given limits becomes ``revolute`` (URDF has no limited continuous
+    joint); a joint without ``<limit>`` gets one (``effort`` and ``velocity`` 100, which URDF requires and
+    torchpf does not read). Everything else is kept."""
+    root = parse_urdf_xml(xml, source)
+    joints = {j.get("name"): j for j in root.iter("joint")}
+    unknown = sorted(set(limits) - set(joints))
+    if unknown:
+        raise ValueError(f"{source}: no joint named {unknown[:5]} to set limits on")
+    for name, (lo, hi) in limits.items():
+        lo, hi = float(lo), float(hi)
+        joint = joints[name]
+        if joint.get("type") not in ("revolute", "continuous", "prismatic"):
+            raise ValueError(f"{source}: joint {name!r} is {joint.get('type')!r}, it has no limits to set")
+        if not (math.isfinite(lo) and math.isfinite(hi) and lo <= hi):
+            raise ValueError(
+                f"{source}: limits of {name!r} must be finite with lower <= upper, got {lo}, {hi}"
+            )
+        if joint.get("type") == "continuous":
+            joint.set("type", "revolute")
+        el = joint.find("limit")
+        if el is None:
+            el = ET.SubElement(joint, "limit", effort="100", velocity="100")
+        el.set("lower", f"{lo:.9g}")
+        el.set("upper", f"{hi:.9g}")
+    ET.indent(root, space="  ")
+    return '<?xml version="1.0"?>\n' + ET.tostring(root, encoding="unicode") + "\n"
+
+
 # ------------------------------------------------------------------------------------------------ reading
 
 
