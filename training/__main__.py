@@ -101,6 +101,10 @@ def _convert(args: argparse.Namespace) -> int:
         f"wrote {urdf_path} ({len(skel.joint_names)} joints, {len(skel.dof_names)} DOFs) and {csv_path} "
         f"({motion.n_frames} frames at {motion.fps:.6g} fps)"
     )
+    print(
+        "the skeleton has no joint limits (BVH has none): 'python -m training fit-limits' learns them from "
+        "mocap CSVs of the action you will track"
+    )
     return 0
 
 

@@ -13,7 +13,7 @@ from torchpf.assets import path as asset_path
 from torchpf.skeleton import Skeleton
 from training.__main__ import main
 from training.limits import circular_range, fit_limits
-from training.mocap import Motion, bvh_to_urdf, load_bvh, save_csv
+from training.mocap import Motion, bvh_motion
 
 HUMAN = str(asset_path("human.urdf"))
 CMU = Path(__file__).resolve().parents[2].parent / "shared" / "mocap" / "cmu"
@@ -150,14 +150,13 @@ def test_with_limits_limits_a_converted_skeletons_continuous_joints(tmp_path):
 
 @pytest.mark.skipif(not (CMU / "07_01.bvh").exists(), reason=f"CMU clips not found in {CMU}")
 def test_fit_limits_cli_on_a_converted_cmu_clip(tmp_path, capsys):
-    # the user's path: convert a BVH, learn its range of motion, track on the limited skeleton
+    # the user's path: convert a BVH (which says the skeleton has no limits), learn its range of motion
     bvh = CMU / "07_01.bvh"
-    urdf = tmp_path / "skeleton.urdf"
-    urdf.write_text(bvh_to_urdf(bvh, scale=0.056444))
+    assert main(["convert", str(bvh), "--scale", "0.056444", "--out-dir", str(tmp_path)]) == 0
+    assert "fit-limits" in capsys.readouterr().out
+    urdf, csv = tmp_path / "skeleton.urdf", tmp_path / "07_01.csv"
     skel = Skeleton.from_urdf(str(urdf))
-    _, motion = load_bvh(bvh, scale=0.056444)
-    csv = tmp_path / "07_01.csv"
-    save_csv(csv, Motion(motion.dof_names, motion.fps, motion.angles))
+    motion = bvh_motion(bvh, 0.056444, dof_names=skel.dof_names)
     out = tmp_path / "limited.urdf"
     argv = ["fit-limits", str(csv), "--skeleton", str(urdf), "--out", str(out), "--skip-first", "1"]
     assert main(argv) == 0
