@@ -695,8 +695,7 @@ class Skeleton(nn.Module):
         :func:`~torchpf.kinematics.urdf.rebody_urdf` (its ``urdf_xml``), so :meth:`save_urdf` and
         :meth:`from_urdf` give it back as it is.
         """
-        xml = self._body_xml(radii, scale, lengths)
-        return Skeleton(build_chain(xml, self.source), xml, joint_names=self.joint_names, source=self.source)
+        return self._rebuilt(self._body_xml(radii, scale, lengths))
 
     def with_limits(self, lower=None, upper=None) -> Skeleton:
         """A new skeleton with the same body and other joint limits: ``lower``, ``upper`` (D,) tensors in
@@ -721,7 +720,10 @@ class Skeleton(nn.Module):
         }
         if bool((changed & ~finite).any()):
             raise ValueError("with_limits: a DOF given a limit needs finite limits on both sides")
-        xml = relimit_urdf(self._body_xml(), limits, source=self.source)
+        return self._rebuilt(relimit_urdf(self._body_xml(), limits, source=self.source))
+
+    def _rebuilt(self, xml: str) -> Skeleton:
+        """A skeleton read from ``xml``, a rewrite of this one's URDF (same joints, same source)."""
         return Skeleton(build_chain(xml, self.source), xml, joint_names=self.joint_names, source=self.source)
 
     def save_urdf(self, path: str | os.PathLike) -> None:

@@ -212,6 +212,12 @@ def _scaled_attr(el: ET.Element, key: str, factor: float) -> None:
         el.set(key, _fmt([float(v) * factor for v in value.split()]))
 
 
+def _document(root: ET.Element) -> str:
+    """A URDF tree as indented text with its XML declaration."""
+    ET.indent(root, space="  ")
+    return '<?xml version="1.0"?>\n' + ET.tostring(root, encoding="unicode") + "\n"
+
+
 def rebody_urdf(
     xml: str,
     *,
@@ -274,8 +280,7 @@ def rebody_urdf(
             ET.SubElement(el, "origin", xyz=_fmt([0.5 * v for v in offset]), rpy=_fmt(rpy))
             geom = ET.SubElement(el, "geometry")
             ET.SubElement(geom, "cylinder", radius=f"{float(radius):.9g}", length=f"{length:.9g}")
-    ET.indent(root, space="  ")
-    return '<?xml version="1.0"?>\n' + ET.tostring(root, encoding="unicode") + "\n"
+    return _document(root)
 
 
 def relimit_urdf(
@@ -307,8 +312,7 @@ def relimit_urdf(
             el = ET.SubElement(joint, "limit", effort="100", velocity="100")
         el.set("lower", f"{lo:.9g}")
         el.set("upper", f"{hi:.9g}")
-    ET.indent(root, space="  ")
-    return '<?xml version="1.0"?>\n' + ET.tostring(root, encoding="unicode") + "\n"
+    return _document(root)
 
 
 # ------------------------------------------------------------------------------------------------ reading
