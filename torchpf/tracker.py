@@ -212,6 +212,24 @@ class _Frames:
         return (self.make(t) for t in range(self.n))
 
 
+def _warn_outside_limits(skeleton, pose: torch.Tensor, how: str) -> None:
+    """Warn when the initial ``pose`` (D,) lies outside ``skeleton``'s joint limits (by more than 1e-6, the
+    limits' rounding in a URDF): the filter starts from it clamped, not from the pose given (e.g. limits
+    learned from other performers' mocap, ``python -m training fit-limits``)."""
+    lo, hi = skeleton.lower.to(pose), skeleton.upper.to(pose)
+    beyond = (lo - pose).clamp_min(0) + (pose - hi).clamp_min(0)
+    bad = torch.nonzero(beyond > 1e-6).flatten().tolist()
+    if bad:
+        worst = sorted(bad, key=lambda d: -float(beyond[d]))
+        shown = ", ".join(f"{skeleton.dof_names[d]} by {float(beyond[d]):.3g}" for d in worst[:3])
+        more = f" and {len(bad) - 3} more" if len(bad) > 3 else ""
+        warnings.warn(
+            f"Tracker: the initial pose ({how}) lies outside the skeleton's joint limits on {len(bad)} DOFs "
+            f"({shown}{more} rad or m); the track starts from it clamped",
+            stacklevel=3,
+        )
+
+
 class Tracker(nn.Module):
     """Articulated tracker assembled from a skeleton, cameras, a likelihood, a motion prior and a filter.
 
@@ -651,6 +669,8 @@ class Tracker(nn.Module):
             raise ValueError(
                 f"init must be a ({len(self.skeleton.dof_names)},) pose, got {tuple(init.shape)}"
             )
+        if how != "auto":  # the detector's pose is inside the limits; a given one may not be
+            _warn_outside_limits(self.skeleton, init, how)
         if how != "auto" and self._calibrates(calibrate, frames[0], init=how):
             from torchpf.detect import fit_body_to_frame
 

@@ -407,3 +407,26 @@ def test_hybrid_default_stays_within_a_small_budget(scene, budget):
         skel, cams, n_particles=budget, filter_options={"refine_options": {"steps": 3}}, progress=False
     )
     assert explicit.filter.refiner.steps == 3 and explicit.filter.n_refine == 4  # the user's choice stands
+
+
+def test_an_initial_pose_outside_the_limits_is_warned_and_clamped(scene):
+    """Limits learned from other performers (fit-limits) may not hold a new one's first pose: the track
+    starts from it clamped, and says so; a pose inside the limits says nothing."""
+    import warnings
+
+    skel, cams, seq, angles = scene
+    knee = skel.dof_names.index("LeftLeg_Xrotation")
+    x0 = float(angles[0, knee])
+    lower = skel.lower.clone()
+    lower[knee] = x0 + 0.2
+    limited = skel.with_limits(lower, None)
+    frames = [seq.frame(t) for t in range(2)]
+    kwargs = dict(likelihood="silhouette", dynamics=walk(), filter="sir", n_particles=20, progress=False)
+    with pytest.warns(
+        UserWarning, match=r"outside the skeleton's joint limits on 1 DOFs \(LeftLeg_Xrotation by 0.2"
+    ):
+        result = Tracker(limited, cams, **kwargs).track(frames, init=angles[0])
+    assert float(result.angles[:, knee].min()) >= x0 + 0.2 - 1e-6
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        Tracker(skel, cams, **kwargs).track(frames, init=angles[0])
