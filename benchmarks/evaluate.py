@@ -881,34 +881,44 @@ def auto_setup(**options: Any) -> Callable[..., Any]:
 _LIMITS: dict[tuple[str, str], tuple[torch.Tensor, torch.Tensor]] = {}
 
 
-def learned_limits_setup(margin: float = 0.15, **options: Any) -> Callable[..., Tracker]:
+def learned_limits_setup(
+    margin: float = 0.15, same_action: bool = False, **options: Any
+) -> Callable[..., Tracker]:
     """A setup that first gives the converted skeleton joint limits learned from the *other performers'*
-    clips (leave one performer out: every BVH of ``CMU_DIR`` whose subject number, the part of the file name
-    before ``_``, is not this clip's; each converted on this skeleton, its first frame, the CMU rest pose,
-    dropped; :func:`training.limits.fit_limits` with ``margin``), what ``python -m training fit-limits`` does
-    from a user's mocap of the actions they track, then builds ``Tracker(limited, cameras, n_particles=N,
-    **options)``. The limits are learned once per performer and run; their time is not the tracker's."""
+    clips (leave one performer out: every BVH of ``CMU_DIR`` whose subject in ``INDEX.tsv`` is not this
+    clip's, with ``same_action`` only those of this clip's action; each converted on this skeleton, its first
+    frame, the CMU rest pose, dropped; :func:`training.limits.fit_limits` with ``margin``), what ``python -m
+    training fit-limits`` does from a user's mocap of the actions they track, then builds
+    ``Tracker(limited, cameras, n_particles=N, **options)``. The limits are learned once per performer (and
+    action) and run; their time is not the tracker's."""
 
     def setup(seq_dir: Path, skeleton: Skeleton, *, n_particles: int = 500, **_) -> Tracker:
         from torchpf.sequence import read_sequence
         from training.limits import fit_limits
         from training.mocap import bvh_motion
 
-        clip = json.loads((Path(seq_dir) / "render.json").read_text())["clip"]
-        subject = Path(clip).stem.split("_")[0]
-        key = (subject, skeleton.source)
+        clip = Path(json.loads((Path(seq_dir) / "render.json").read_text())["clip"]).stem
+        with open(Path(CMU_DIR) / "INDEX.tsv", encoding="utf-8") as f:
+            index = {Path(r["file"]).stem: r for r in csv.DictReader(f, delimiter="\t")}
+        me = index[clip]
+        others = [
+            c
+            for c, r in index.items()
+            if r["subject"] != me["subject"] and (not same_action or r["description"] == me["description"])
+        ]
+        if not others:
+            raise ValueError(f"no clip of another performer than {me['subject']} in {CMU_DIR}/INDEX.tsv")
+        key = (tuple(others), skeleton.source)
         if key not in _LIMITS:
-            others = [p for p in sorted(Path(CMU_DIR).glob("*.bvh")) if p.stem.split("_")[0] != subject]
-            if not others:
-                raise ValueError(f"no clip of another performer than {subject} in {CMU_DIR}")
-            motions = [bvh_motion(p, dof_names=skeleton.dof_names)[1:] for p in others]
+            motions = [
+                bvh_motion(Path(CMU_DIR) / f"{c}.bvh", dof_names=skeleton.dof_names)[1:] for c in others
+            ]
             _LIMITS[key] = fit_limits(motions, skeleton, margin=margin)[:2]
         limited = skeleton.with_limits(*_LIMITS[key])
         return _tracker(seq_dir, limited, read_sequence(seq_dir).cameras, n_particles, **options)
 
-    setup.__doc__ = (
-        f"joint limits from the other performers' clips (margin {margin} rad), Tracker options {options}"
-    )
+    which = "of the same action" if same_action else ""
+    setup.__doc__ = f"joint limits from the other performers' clips {which} (margin {margin} rad), {options}"
     return setup
 
 
@@ -933,6 +943,7 @@ FOREIGN_SETUPS: dict[str, Callable[..., Any]] = {
     "auto": auto_setup(),  # issue 13: no ground truth; detector + fit_body on frame 0, then the defaults
     # the defaults on the skeleton with joint limits learned from the other performers' clips (fit-limits)
     "learned_limits": learned_limits_setup(),
+    "learned_limits_action": learned_limits_setup(same_action=True),  # ... of the clip's action only
     "calibrated_bidir_partitioned": calibrated_setup(**_BIDIR, filter="partitioned"),
     "calibrated_bidir_sir": calibrated_setup(**_BIDIR, filter="sir"),
     "calibrated_bidir_apf": calibrated_setup(**_BIDIR, filter="apf"),
