@@ -45,6 +45,26 @@ def _positive_float(text: str) -> float:
     return value
 
 
+def _non_negative_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {text!r}")
+    return value
+
+
+def _add_skip_first(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--skip-first",
+        type=_non_negative_int,
+        default=0,
+        metavar="N",
+        help="drop the first N frames of every file (CMU conversions: 1, a rest pose)",
+    )
+
+
 #: Units a BVH file is written in, metres per file unit, tried by ``convert`` when ``--scale`` is missing.
 #: CMU's unit is 1/0.45 inch (its ASF files' ``length 0.45``). A body size decides between them: the ranges
 #: of rest-pose extents that each gives a :data:`_BODY_SIZE_M` body do not overlap.
@@ -211,8 +231,6 @@ def _fit_dynamics(args: argparse.Namespace) -> int:
 
     if args.out.suffix != ".npz":
         raise ValueError(f"--out must name a .npz file, got {str(args.out)!r}")
-    if args.skip_first < 0:
-        raise ValueError(f"--skip-first must be >= 0, got {args.skip_first}")
     check_output_file(args.out)
     skeleton = Skeleton.from_urdf(args.skeleton)
     stats = learn_from_files(args.files, skeleton, fps=args.fps, alpha=args.alpha, skip_first=args.skip_first)
@@ -232,8 +250,6 @@ def _fit_limits(args: argparse.Namespace) -> int:
 
     if args.out.suffix != ".urdf":
         raise ValueError(f"--out must name a .urdf file, got {str(args.out)!r}")
-    if args.skip_first < 0:
-        raise ValueError(f"--skip-first must be >= 0, got {args.skip_first}")
     if not (math.isfinite(args.margin) and args.margin >= 0):
         raise ValueError(f"--margin must be a number of radians >= 0, got {args.margin}")
     check_output_file(args.out)
@@ -342,13 +358,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     fit.add_argument("--alpha", type=float, help="fix the velocity smoothing alpha instead of fitting it")
     fit.add_argument("--max-iter", type=int, default=30, help="most synchronisation iterations (30)")
-    fit.add_argument(
-        "--skip-first",
-        type=int,
-        default=0,
-        metavar="N",
-        help="drop the first N frames of every file (CMU conversions: 1, a rest pose)",
-    )
+    _add_skip_first(fit)
     fit.add_argument(
         "--validate",
         action="store_true",
@@ -385,13 +395,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--fps", type=_positive_float, help="rate of the statistics (track at it); default: the files' rate"
     )
     dyn.add_argument("--alpha", type=float, help="fix the velocity smoothing alpha instead of fitting it")
-    dyn.add_argument(
-        "--skip-first",
-        type=int,
-        default=0,
-        metavar="N",
-        help="drop the first N frames of every file (CMU conversions: 1, a rest pose)",
-    )
+    _add_skip_first(dyn)
     add_runtime_options(dyn)
     dyn.set_defaults(func=_fit_dynamics)
 
@@ -409,13 +413,7 @@ def build_parser() -> argparse.ArgumentParser:
     lim.add_argument(
         "--margin", type=float, default=0.15, metavar="RAD", help="widening of each range on each side (0.15)"
     )
-    lim.add_argument(
-        "--skip-first",
-        type=int,
-        default=0,
-        metavar="N",
-        help="drop the first N frames of every file (CMU conversions: 1, a rest pose)",
-    )
+    _add_skip_first(lim)
     add_runtime_options(lim)
     lim.set_defaults(func=_fit_limits)
 

@@ -180,5 +180,9 @@ def test_fit_limits_cli_on_a_converted_cmu_clip(tmp_path, capsys):
     assert main(["fit-limits", str(tmp_path / "none.csv"), "--skeleton", str(urdf), "--out", str(out2)]) == 2
     assert main(["fit-limits", str(csv), "--skeleton", str(urdf), "--out", str(tmp_path / "x.txt")]) == 2
     assert main(["fit-limits", str(csv), "--skeleton", str(urdf), "--out", str(out2), "--margin", "-1"]) == 2
+    with pytest.raises(SystemExit) as stop:  # refused while parsing, as argparse does
+        main(["fit-limits", str(csv), "--skeleton", str(urdf), "--out", str(out2), "--skip-first", "-1"])
+    assert stop.value.code == 2
     assert not out2.exists()
-    assert "margin" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "margin" in err and "argument --skip-first: must be >= 0" in err
