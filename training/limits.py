@@ -22,7 +22,10 @@ limits, and the report says which. Prismatic DOFs keep theirs (bone lengths vary
 The limits are what the performances did, not what a body can do: learn them from the actions you will
 track (walks and runs limit the arms to a walker's swing). Learned from the other performers' walks and
 runs of the CMU clips (leave one performer out), the default tracker's error on noisy foreign renders fell
-from 84 to about 60 mm (BENCHMARKS.md).
+from 84 to 62 mm over three draws of the mask defects, and on clean masks from 31 to 28 mm (BENCHMARKS.md,
+"Joint limits learned from mocap"). Anatomical ranges (what a body can do: the shipped ``human.urdf``'s) did
+not help there (78 against 74.5 mm on one draw), nor did ranges widened by 0.5 rad (75): it is the
+action's range that holds a lost leg.
 """
 
 from __future__ import annotations
