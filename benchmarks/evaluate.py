@@ -878,7 +878,7 @@ def auto_setup(**options: Any) -> Callable[..., Any]:
     return setup
 
 
-_LIMITS: dict[tuple[str, str], tuple[torch.Tensor, torch.Tensor]] = {}
+_LIMITS: dict[tuple[tuple[str, ...], str], tuple[torch.Tensor, torch.Tensor]] = {}
 
 
 def learned_limits_setup(
@@ -917,8 +917,8 @@ def learned_limits_setup(
         limited = skeleton.with_limits(*_LIMITS[key])
         return _tracker(seq_dir, limited, read_sequence(seq_dir).cameras, n_particles, **options)
 
-    which = "of the same action" if same_action else ""
-    setup.__doc__ = f"joint limits from the other performers' clips {which} (margin {margin} rad), {options}"
+    which = " of the same action" if same_action else ""
+    setup.__doc__ = f"joint limits from the other performers' clips{which} (margin {margin} rad), {options}"
     return setup
 
 
