@@ -208,3 +208,26 @@ def test_foreign_evaluation_smoke(tmp_path):
     assert "Foreign renders" in table and "| before |" in table and "**mean**" in table
     with pytest.raises(ValueError, match="unknown setup"):
         ev.ForeignConfig(setups=("tomorrow",))
+
+
+@needs_cmu
+def test_learned_limits_setup_leaves_the_performer_out(tmp_path):
+    """`--setups learned_limits`: the clip's skeleton limited to the range of the *other* performers'
+    clips (INDEX.tsv subjects), which holds every frame of theirs; the tracker it builds uses it."""
+    from benchmarks import evaluate as ev
+    from training.mocap import bvh_motion
+
+    seq = foreign.build_sequence(CMU / "16_46.bvh", tmp_path / "seq", defects="clean", frames=3)
+    skel = Skeleton.from_urdf(str(seq.skeleton_path))
+    assert len(skel.free_rotations()) > len(skel.dof_names) // 2  # a converted BVH: no limits
+    tracker = ev.FOREIGN_SETUPS["learned_limits"](seq.path, skel, n_particles=30)
+    limited = tracker.skeleton
+    ((clips, _),) = [k for k in ev._LIMITS if k[1] == skel.source]
+    assert clips and not any(c.startswith("16_") for c in clips) and "35_24" in clips
+    assert len(limited.free_rotations()) < 8  # what crosses +-pi or flips in the hands' data
+    for clip in ("07_01", "35_24"):
+        angles = bvh_motion(CMU / f"{clip}.bvh", dof_names=skel.dof_names).angles[1:]
+        wrapped = torch.atan2(torch.sin(angles), torch.cos(angles))
+        narrow = limited.posture_dofs & (limited.upper - limited.lower < 6)
+        inside = (wrapped >= limited.lower - 1e-6) & (wrapped <= limited.upper + 1e-6)
+        assert bool(inside[:, narrow].all()), clip
