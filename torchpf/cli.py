@@ -34,6 +34,7 @@ __all__ = [
     "check_output_dir",
     "check_output_file",
     "default_threads",
+    "int_at_least",
     "run_command",
 ]
 
@@ -52,14 +53,22 @@ def default_threads() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-def _threads(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
-    return value
+def int_at_least(minimum: int):
+    """An argparse ``type``: the argument as an ``int`` >= ``minimum``, else argparse's usage error."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"must be >= {minimum}, got {value}")
+        return value
+
+    return parse
+
+
+_threads = int_at_least(1)
 
 
 def add_runtime_options(parser: argparse.ArgumentParser) -> None:

@@ -30,7 +30,7 @@ import math
 import sys
 from pathlib import Path
 
-from torchpf.cli import add_runtime_options, check_output_dir, check_output_file, run_command
+from torchpf.cli import add_runtime_options, check_output_dir, check_output_file, int_at_least, run_command
 
 PROG = "python -m training"
 
@@ -45,20 +45,10 @@ def _positive_float(text: str) -> float:
     return value
 
 
-def _non_negative_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {text!r}")
-    return value
-
-
 def _add_skip_first(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--skip-first",
-        type=_non_negative_int,
+        type=int_at_least(0),
         default=0,
         metavar="N",
         help="drop the first N frames of every file (CMU conversions: 1, a rest pose)",
