@@ -138,8 +138,6 @@ class TrajectorySmoother(nn.Module):
     def _window(self, x: Tensor, obs: Silhouettes, anchors: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
         """Descend on ``x (T, B, D)`` (obs batched ``(T B, V, H, W)``); ``(best x, E before, E after)``."""
         T, B, D = x.shape
-        lo = self.skeleton.lower.to(x)
-        hi = self.skeleton.upper.to(x)
         lr = self.lr.to(x)
         damp = damping_factor(self.damping, lr)
 
@@ -160,7 +158,7 @@ class TrajectorySmoother(nn.Module):
                 g = g - grad.reshape(T, B, D).to(z)
             return energy, g
 
-        cur = torch.maximum(torch.minimum(x.detach(), hi), lo)
+        cur = self.skeleton.clamp(x.detach())
         m, v = torch.zeros_like(cur), torch.zeros_like(cur)
         best, best_e, first = cur, torch.full((B,), math.inf, dtype=x.dtype, device=x.device), None
         for step in range(self.steps + 1):
@@ -173,7 +171,7 @@ class TrajectorySmoother(nn.Module):
                 break
             grad = torch.nan_to_num(grad, nan=0.0, posinf=0.0, neginf=0.0)
             cur = damped_adam_step(cur, grad, m, v, lr, damp, step, self.steps)
-            cur = torch.maximum(torch.minimum(cur, hi), lo)
+            cur = self.skeleton.clamp(cur)
         # a trajectory whose energy was never finite keeps the track
         stuck = ~torch.isfinite(best_e)
         return torch.where(stuck.view(1, B, 1), x, best), first, torch.where(stuck, first, best_e)
