@@ -216,8 +216,7 @@ def _warn_outside_limits(skeleton, pose: torch.Tensor, how: str) -> None:
     """Warn when the initial ``pose`` (D,) lies outside ``skeleton``'s joint limits (by more than 1e-6, the
     limits' rounding in a URDF): the filter starts from it clamped, not from the pose given (e.g. limits
     learned from other performers' mocap, ``python -m training fit-limits``)."""
-    lo, hi = skeleton.lower.to(pose), skeleton.upper.to(pose)
-    beyond = (lo - pose).clamp_min(0) + (pose - hi).clamp_min(0)
+    beyond = (pose - skeleton.clamp(pose)).abs()
     bad = torch.nonzero(beyond > 1e-6).flatten().tolist()
     if bad:
         worst = sorted(bad, key=lambda d: -float(beyond[d]))
