@@ -723,7 +723,7 @@ class Tracker(nn.Module):
             if self.smooth if self.smooth is not None else self._reads_silhouettes():
                 filtered = per_frame["estimates"]
                 moved = _Frames(len(frames), lambda t: _to_device(frames[t], self.device, self.dtype))
-                per_frame["estimates"] = self._smoother(fps)(filtered, moved).x
+                per_frame["estimates"] = self._smoother()(filtered, moved).x
         except BaseException:  # the filter's rows so far stay in OUT.partial
             if writer is not None:
                 writer.abort()
@@ -784,10 +784,10 @@ class Tracker(nn.Module):
                 return module
         return None
 
-    def _smoother(self, fps: float):
+    def _smoother(self):
         """The :class:`~torchpf.smooth.TrajectorySmoother` of ``track(smooth=...)``: the hybrid refiner's cue
         (else the default distance cue), ``sigma`` from ``smooth_options`` or ``scale`` times the motion
-        prior's step std at ``fps`` (the prior this tracker built for the sequence's rate)."""
+        prior's per-frame step std (the prior this tracker built for the sequence's rate)."""
         from torchpf.smooth import TrajectorySmoother
 
         options = dict(self.smooth_options)
