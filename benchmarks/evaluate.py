@@ -225,13 +225,18 @@ class EvalSequence:
             self.truth = self.skeleton.fk(self.angles.to(torch.float64))[:, self.joints]
 
 
-def _cmu_index(cmu_dir: Path) -> dict[str, str]:
-    """Clip stem -> description ("walk", "run/jog") from ``INDEX.tsv`` (empty if absent)."""
+def _cmu_rows(cmu_dir: Path) -> dict[str, dict[str, str]]:
+    """Clip stem -> its ``INDEX.tsv`` row (``subject``, ``description``, ...; empty if absent)."""
     index = cmu_dir / "INDEX.tsv"
     if not index.is_file():
         return {}
     with open(index, encoding="utf-8") as f:
-        return {Path(r["file"]).stem: r["description"] for r in csv.DictReader(f, delimiter="\t")}
+        return {Path(r["file"]).stem: r for r in csv.DictReader(f, delimiter="\t")}
+
+
+def _cmu_index(cmu_dir: Path) -> dict[str, str]:
+    """Clip stem -> description ("walk", "run/jog") from ``INDEX.tsv`` (empty if absent)."""
+    return {stem: r["description"] for stem, r in _cmu_rows(cmu_dir).items()}
 
 
 def treadmill(skeleton: Skeleton, angles: torch.Tensor) -> torch.Tensor:
@@ -898,8 +903,9 @@ def learned_limits_setup(
         from training.mocap import bvh_motion
 
         clip = Path(json.loads((Path(seq_dir) / "render.json").read_text())["clip"]).stem
-        with open(Path(CMU_DIR) / "INDEX.tsv", encoding="utf-8") as f:
-            index = {Path(r["file"]).stem: r for r in csv.DictReader(f, delimiter="\t")}
+        index = _cmu_rows(Path(CMU_DIR))
+        if clip not in index:
+            raise ValueError(f"{clip} is not in {CMU_DIR}/INDEX.tsv: its performer is unknown")
         me = index[clip]
         others = [
             c
