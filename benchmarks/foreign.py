@@ -835,14 +835,10 @@ def build_sequence(
     from torchpf.camera import CameraRig
     from torchpf.io import write_text_atomic
     from torchpf.sequence import SequenceData, write_sequence
-    from torchpf.skeleton import Skeleton
-    from training.mocap import bvh_motion, bvh_to_urdf, read_bvh
+    from training.mocap import convert_bvh
 
     clip, out = Path(clip), Path(out_dir)
-    bvh = read_bvh(clip)
-    urdf = bvh_to_urdf(bvh, scale)
-    skel = Skeleton.from_urdf(urdf)
-    motion = bvh_motion(bvh, scale, dof_names=skel.dof_names)
+    urdf, skel, motion, _ = convert_bvh(clip, scale)
     angles = resample(motion.angles[1:], motion.fps, fps, skel.dof_revolute)
     if frames is not None:
         angles = angles[:frames]

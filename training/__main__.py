@@ -10,9 +10,10 @@ Commands::
     python -m training export TRACK.csv --skeleton S.urdf --out track.bvh [--scale S]
 
 ``convert`` turns a BVH file into a torchpf skeleton (URDF, z up, metres) and a mocap CSV of its angle
-tracks in the skeleton's ``dof_names`` order (see :mod:`training.mocap`). ``fit`` learns an action model
-(Rius eq. 1-3, :mod:`training.fit`) from performances of one action and saves it as ``.npz``
-(:mod:`priors.action`); ``inspect`` prints its summary and saves the plots of Rius Fig. 1
+tracks in the skeleton's ``dof_names`` order (see :mod:`training.mocap`); the rotation channels the file
+never moves (channels the rig does not animate) are held at their value (``--keep-static`` keeps them
+free). ``fit`` learns an action model (Rius eq. 1-3, :mod:`training.fit`) from performances of one action and
+saves it as ``.npz`` (:mod:`priors.action`); ``inspect`` prints its summary and saves the plots of Rius Fig. 1
 (:mod:`training.plots`). ``fit-dynamics`` learns per-DOF step stds and the constant-velocity α
 (:mod:`training.dynamics`) for ``python -m torchpf track --dynamics dyn.npz``. ``fit-limits`` writes the
 skeleton again with joint limits learned from the performances' range of motion (:mod:`training.limits`; a
@@ -94,15 +95,13 @@ def _infer_scale(bvh, file: str) -> float:
 def _convert(args: argparse.Namespace) -> int:
     # Imported here so that `--help` answers without loading torch.
     from torchpf.io import write_text_atomic
-    from training.mocap import bvh_motion, bvh_to_urdf, read_bvh, save_csv, skeleton_from_urdf
+    from training.mocap import convert_bvh, read_bvh, save_csv
 
     check_output_dir(args.out_dir, "--out-dir")
     bvh = read_bvh(args.file)
     if args.scale is None:
         args.scale = _infer_scale(bvh, args.file)
-    urdf = bvh_to_urdf(bvh, args.scale)
-    skel = skeleton_from_urdf(bvh, urdf)
-    motion = bvh_motion(bvh, args.scale, dof_names=skel.dof_names)
+    urdf, skel, motion, held = convert_bvh(bvh, args.scale, hold_static=not args.keep_static)
     out = Path(args.out_dir)
     urdf_path, csv_path = out / "skeleton.urdf", out / f"{Path(args.file).stem}.csv"
     write_text_atomic(urdf_path, urdf)
@@ -111,6 +110,11 @@ def _convert(args: argparse.Namespace) -> int:
         f"wrote {urdf_path} ({len(skel.joint_names)} joints, {len(skel.dof_names)} DOFs) and {csv_path} "
         f"({motion.n_frames} frames at {motion.fps:.6g} fps)"
     )
+    if held:
+        print(
+            f"{len(held)} rotation channels never move in this file (the rig does not animate them): held at "
+            f"their values, e.g. {', '.join(list(held)[:3])} (--keep-static keeps them free)"
+        )
     print(
         "the skeleton has no joint limits (BVH has none): 'python -m training fit-limits' learns them from "
         "mocap CSVs of the action you will track"
@@ -289,6 +293,12 @@ def build_parser() -> argparse.ArgumentParser:
         "(metres, cm, mm, inches or CMU units), with a warning",
     )
     convert.add_argument("--out-dir", required=True, metavar="DIR", help="output folder (created if missing)")
+    convert.add_argument(
+        "--keep-static",
+        action="store_true",
+        help="keep free the rotation channels the file never moves (default: held at their value, the rig "
+        "does not animate them; training.mocap.static_channels)",
+    )
     add_runtime_options(convert)
     convert.set_defaults(func=_convert)
 

@@ -50,6 +50,15 @@ zero root OFFSET, so there the values are only scaled.
 slightly, e.g. a wrist that wraps, and FK is periodic anyway), prismatic ones
 ``+-torchpf.kinematics.urdf.ROOT_TRANSLATION_LIMIT``. Values are never wrapped or clipped here.
 
+**Channels the rig does not animate.** A BVH exporter writes three rotation channels for every joint, and a
+rig animates only some: in every CMU clip the same 22 of the 96 channels (the hip and collar bones, two of
+each wrist's three, the hand tips) hold one value for the whole file, whoever the performer. A tracker
+searching them moves the hips and shoulders off the pelvis and the collar to fit mask noise.
+:func:`convert_bvh` (``python -m training convert``; ``hold_static=False`` / ``--keep-static`` keeps them
+free) finds them in the file's own motion (:func:`static_channels`: posture DOFs only, at least
+:data:`STATIC_MIN_FRAMES` frames, never all of them) and writes each as a limit range of one value, which the
+filters, the refinement and the smoothing hold (a DOF with ``lower == upper`` is frozen).
+
 **Capsules.** Each bone gets radius ``0.15 x`` its length clipped to ``[0.01, 0.08]`` m unless ``radii``
 (child joint name -> radius in m) says otherwise.
 
@@ -85,6 +94,7 @@ from torchpf.kinematics.urdf import (
     BodyJoint,
     Dof,
     build_urdf,
+    relimit_urdf,
 )
 from torchpf.skeleton import Skeleton
 
@@ -717,11 +727,80 @@ def skeleton_from_urdf(bvh: BvhData, urdf: str) -> Skeleton:
         raise MocapFormatError(f"the converted skeleton is invalid ({reason})", path=bvh.path) from None
 
 
+#: Fewest frames in which a channel that never moves is taken for one the rig does not animate rather than a
+#: joint the performer held still (a second at 30 fps; CMU clips have hundreds at 120 fps).
+STATIC_MIN_FRAMES = 30
+
+
+def static_channels(
+    skeleton: Skeleton, motion: Motion, *, min_frames: int = STATIC_MIN_FRAMES, tol: float = 1e-9
+) -> dict[str, float]:
+    """The posture DOFs (:attr:`~torchpf.skeleton.Skeleton.posture_dofs`: revolute, not the root's) that
+    ``motion`` never moves, with the value they hold (rad): the channels the rig that wrote the file does not
+    animate (module docstring).
+
+    Args:
+        skeleton: the motion's skeleton (its tree says which DOFs shape the posture).
+        motion: a performance on it (columns by name; DOFs it lacks are not judged).
+        min_frames: a shorter motion returns ``{}``: a few frames cannot tell a channel the rig never moves
+            from a joint held still.
+        tol: the largest spread (rad) of a channel still taken for constant.
+
+    Returns:
+        ``{dof name: value}``; ``{}`` as well where *every* posture DOF is constant (a file of one still pose
+        says nothing about which channels move).
+    """
+    if motion.n_frames < int(min_frames):
+        return {}
+    column = {n: i for i, n in enumerate(motion.dof_names)}
+    posture = skeleton.posture_dofs.cpu().tolist()
+    names = [n for n, p in zip(skeleton.dof_names, posture, strict=True) if p and n in column]
+    if not names:
+        return {}
+    angles = motion.angles[:, [column[n] for n in names]].detach().double().cpu()
+    still = (angles.amax(0) - angles.amin(0)) <= tol
+    if bool(still.all()):
+        return {}
+    return {n: float(angles[0, k]) for k, n in enumerate(names) if bool(still[k])}
+
+
+def convert_bvh(
+    bvh: BvhData | str | os.PathLike,
+    scale: float = 1.0,
+    *,
+    radii: Mapping[str, float] | None = None,
+    hold_static: bool = True,
+) -> tuple[str, Skeleton, Motion, dict[str, float]]:
+    """A BVH file as ``python -m training convert`` turns it into a tracking skeleton.
+
+    Args:
+        bvh: a parsed file or a path.
+        scale: metres per file unit (CMU: ``CMU_SCALE``).
+        radii: as :func:`bvh_to_urdf`.
+        hold_static: write the channels the file never moves (:func:`static_channels`) as limits of one
+            value, so that a tracker holds them (module docstring); False keeps every channel free.
+
+    Returns:
+        ``(urdf, skel, motion, held)``: the URDF text, its skeleton, the motion in ``skel.dof_names`` order
+        (:func:`bvh_motion`) and ``{dof name: held value}``.
+    """
+    bvh = _as_bvh(bvh)
+    urdf = bvh_to_urdf(bvh, scale, radii=radii)
+    skel = skeleton_from_urdf(bvh, urdf)
+    motion = bvh_motion(bvh, scale, dof_names=skel.dof_names)
+    held = static_channels(skel, motion) if hold_static else {}
+    if held:
+        urdf = relimit_urdf(urdf, {n: (v, v) for n, v in held.items()}, source=str(bvh.path))
+        skel = skeleton_from_urdf(bvh, urdf)
+    return urdf, skel, motion, held
+
+
 def load_bvh(
     path: str | os.PathLike,
     scale: float = 1.0,
     *,
     radii: Mapping[str, float] | None = None,
+    hold_static: bool = False,
 ) -> tuple[Skeleton, Motion]:
     """Read a BVH file as a torchpf skeleton and its motion.
 
@@ -729,6 +808,8 @@ def load_bvh(
         path: the BVH file.
         scale: metres per file unit (CMU: ``CMU_SCALE`` = 0.056444).
         radii: capsule radius (m) per child joint name (default: :func:`default_radii`).
+        hold_static: hold the channels the file never moves at their value (:func:`convert_bvh`, what
+            ``python -m training convert`` writes); default False: the file's rig as it is.
 
     Returns:
         ``(skel, motion)``: ``skel`` a :class:`torchpf.Skeleton` whose ``joint_names`` are the BVH joints and
@@ -739,9 +820,8 @@ def load_bvh(
     Raises:
         MocapFormatError: malformed file, naming file, line and column.
     """
-    bvh = read_bvh(path)
-    skel = skeleton_from_urdf(bvh, bvh_to_urdf(bvh, scale, radii=radii))
-    return skel, bvh_motion(bvh, scale, dof_names=skel.dof_names)
+    _, skel, motion, _ = convert_bvh(read_bvh(path), scale, radii=radii, hold_static=hold_static)
+    return skel, motion
 
 
 # ================================================================================================ BVH export

@@ -17,14 +17,18 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from torchpf.io import MocapFormatError
+from torchpf.skeleton import Skeleton
 from training.mocap import (
     CMU_SCALE,
     REVOLUTE_LIMIT,
+    STATIC_MIN_FRAMES,
     Motion,
     bvh_to_urdf,
+    convert_bvh,
     default_radii,
     load_bvh,
     read_bvh,
+    static_channels,
 )
 
 CMU_DIR = Path(__file__).resolve().parents[2].parent / "shared" / "mocap" / "cmu"
@@ -222,6 +226,58 @@ def test_urdf_axes_limits_and_radii(tmp_path):
     assert radii == {"Chest": 0.015, "Chest_end": pytest.approx(0.03)}  # 0.15 x 0.1 m, 0.15 x 0.2 m
     skel, _ = load_bvh(path, 0.1, radii={"Chest_end": 0.05})
     assert skel.radii.tolist() == pytest.approx([0.015, 0.05])
+
+
+def _still_chest(n_frames: int, move_x: bool = True) -> str:
+    """TWO_BONES whose root turns and whose chest's Z rotation holds 15 degrees (X moves if ``move_x``)."""
+    rows = [[0, 0, 0, 30, 0, 0, 15, (k % 7) * float(move_x)] for k in range(n_frames)]
+    for k, row in enumerate(rows):
+        row[4] = k  # the root's X rotation moves; its Z rotation (30) does not, and is not judged
+    return _bvh(TWO_BONES, rows)
+
+
+def test_channels_that_never_move_are_held_at_their_value(tmp_path):
+    path = tmp_path / "clip.bvh"
+    path.write_text(_still_chest(STATIC_MIN_FRAMES))
+    urdf, skel, motion, held = convert_bvh(path)
+    # the root's constant Z rotation places the body: only posture DOFs are judged
+    assert held == {"Chest_Zrotation": pytest.approx(math.radians(15))}
+    d = skel.dof_names.index("Chest_Zrotation")
+    assert float(skel.lower[d]) == pytest.approx(math.radians(15), abs=1e-7) == float(skel.upper[d])
+    assert torch.allclose(skel.clamp(motion.angles), motion.angles, atol=1e-6)  # the motion fits its limits
+    free = [n for n in skel.dof_names if n != "Chest_Zrotation" and n.endswith("rotation")]
+    assert all(float(skel.upper[skel.dof_names.index(n)]) == pytest.approx(REVOLUTE_LIMIT) for n in free)
+    assert torch.equal(Skeleton.from_urdf(urdf).upper, skel.upper)  # the URDF text says it
+    # what load_bvh gives by default, and convert_bvh when asked: the file's rig as it is
+    raw, _ = load_bvh(path)
+    assert float(raw.upper[d]) == pytest.approx(REVOLUTE_LIMIT)
+    assert convert_bvh(path, hold_static=False)[3] == {}
+    same, _ = load_bvh(path, hold_static=True)
+    assert torch.equal(same.upper, skel.upper)
+
+
+@pytest.mark.parametrize(
+    ("frames", "move_x", "why"),
+    [(STATIC_MIN_FRAMES - 1, True, "too short to tell"), (STATIC_MIN_FRAMES, False, "no posture DOF moves")],
+)
+def test_nothing_is_held_without_evidence(tmp_path, frames, move_x, why):
+    path = tmp_path / "clip.bvh"
+    path.write_text(_still_chest(frames, move_x))
+    skel, motion = load_bvh(path)
+    assert static_channels(skel, motion) == {}, why
+
+
+@pytest.mark.skipif(len(CMU_CLIPS) < 2, reason=f"CMU clips not found in {CMU_DIR}")
+def test_cmu_rig_channels_that_never_move_are_the_same_for_every_performer():
+    # two performers (subjects 07 and 35): what convert holds is the rig's, not one performance's (20 of
+    # the 96 channels; 22 without the rest pose of frame 0, which turns the hand tips once)
+    held = [convert_bvh(CMU_DIR / f"{clip}.bvh", CMU_SCALE)[3] for clip in ("07_01", "35_02")]
+    assert held[0].keys() == held[1].keys() and len(held[0]) == 20
+    assert held[0] == pytest.approx(held[1], abs=1e-12)
+    assert {n.rsplit("_", 1)[0] for n in held[0]} == {
+        "LHipJoint", "RHipJoint", "LeftShoulder", "RightShoulder",
+        "LeftHand", "RightHand", "LeftHandIndex1", "RightHandIndex1",
+    }  # fmt: skip
 
 
 def test_end_site_names_are_unique(tmp_path):

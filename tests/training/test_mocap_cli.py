@@ -61,9 +61,23 @@ def test_convert_small_file(tmp_path, capsys):
 
 
 @pytest.mark.skipif(not CMU_CLIP.exists(), reason=f"CMU clip not found: {CMU_CLIP}")
-def test_convert_cmu_clip(tmp_path):
+def test_convert_cmu_clip(tmp_path, capsys):
     assert main(["convert", str(CMU_CLIP), "--scale", str(CMU_SCALE), "--out-dir", str(tmp_path)]) == 0
     _check_outputs(CMU_CLIP, tmp_path, CMU_SCALE)
+    assert "20 rotation channels never move in this file" in capsys.readouterr().out
+    disk = Skeleton.from_urdf(tmp_path / "skeleton.urdf")
+    held = disk.lower == disk.upper
+    assert int(held.sum()) == 20 and disk.dof_names[int(held.nonzero()[0])] == "LHipJoint_Zrotation"
+    # --keep-static: every channel free, as in the file
+    assert (
+        main(
+            ["convert", str(CMU_CLIP), "--scale", str(CMU_SCALE), "--out-dir", str(tmp_path), "--keep-static"]
+        )
+        == 0
+    )
+    assert "never move" not in capsys.readouterr().out
+    disk = Skeleton.from_urdf(tmp_path / "skeleton.urdf")
+    assert not bool((disk.lower == disk.upper).any())
 
 
 @pytest.mark.parametrize(
