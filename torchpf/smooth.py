@@ -244,7 +244,7 @@ def _stack(observations: list, batch: int) -> Silhouettes | Tensor | None:
             raise ValueError("a frame without an observation is only understood with silhouettes")
         return torch.cat([torch.as_tensor(o).reshape(batch, -1) for o in obs])
     V, H, W = ref.masks.shape[-3:]
-    masks, valid = [], []
+    masks, valid, offset = [], [], []
     for o in obs:
         if o is None:
             masks.append(ref.masks.new_zeros(batch, V, H, W))
@@ -252,4 +252,14 @@ def _stack(observations: list, batch: int) -> Silhouettes | Tensor | None:
         else:
             masks.append(o.masks.reshape(-1, V, H, W).expand(batch, -1, -1, -1))
             valid.append(o.valid.reshape(-1, V).expand(batch, -1))
-    return Silhouettes(torch.cat(masks), valid=torch.cat(valid))
+        # the masks' outline offset where a frame has one (Tracker(boundary_offset=...)), else none (0 px)
+        has = o is not None and o.offset is not None
+        offset.append(
+            o.offset.reshape(-1, V).expand(batch, -1)
+            if has
+            else torch.zeros(batch, V, device=ref.masks.device)
+        )
+    any_offset = any(o is not None and o.offset is not None for o in obs)
+    return Silhouettes(
+        torch.cat(masks), valid=torch.cat(valid), offset=torch.cat(offset) if any_offset else None
+    )

@@ -273,9 +273,11 @@ class Tracker(nn.Module):
             segmentation that fattens or thins the person per camera and frame) and let the silhouette cues
             widen or thin the projected capsules by it (:attr:`~torchpf.observations.Silhouettes.offset`).
             Off by default: on foreign renders whose only defect is a random 1-px erosion or dilation per
-            camera and frame it took two clips from 97 / 110 to 61 / 59 mm, but on the full noisy preset
-            (3 clips x 2 seeds) it did not help (145 against 127 mm, within the run-to-run spread;
-            BENCHMARKS.md).
+            camera and frame it took two clips from 97 / 110 to 61 / 59 mm; on the full noisy preset (11
+            clips, three draws of the defects, 2 runs) with today's filter 85 mm against 84 (96 / 82 / 78
+            per draw), clean masks 32-34 mm against 31 (BENCHMARKS.md, "The rig's unanimated channels, and
+            the masks' outline offset, as defaults"). The smoothing reads the masks without it (with it: 81
+            / 80 mm against 75 / 78 on two draws).
         smooth: after the last frame, smooth the whole track on the refinement's cue under an acceleration
             prior (:class:`~torchpf.smooth.TrajectorySmoother`, a fixed-interval smoother: each frame's
             estimate then also sees the frames after it); ``result.filtered_angles`` keeps the filter's

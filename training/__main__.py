@@ -10,15 +10,15 @@ Commands::
     python -m training export TRACK.csv --skeleton S.urdf --out track.bvh [--scale S]
 
 ``convert`` turns a BVH file into a torchpf skeleton (URDF, z up, metres) and a mocap CSV of its angle
-tracks in the skeleton's ``dof_names`` order (see :mod:`training.mocap`); the rotation channels the file
-never moves (channels the rig does not animate) are held at their value (``--keep-static`` keeps them
-free). ``fit`` learns an action model (Rius eq. 1-3, :mod:`training.fit`) from performances of one action and
-saves it as ``.npz`` (:mod:`priors.action`); ``inspect`` prints its summary and saves the plots of Rius Fig. 1
-(:mod:`training.plots`). ``fit-dynamics`` learns per-DOF step stds and the constant-velocity α
-(:mod:`training.dynamics`) for ``python -m torchpf track --dynamics dyn.npz``. ``fit-limits`` writes the
-skeleton again with joint limits learned from the performances' range of motion (:mod:`training.limits`; a
-converted BVH has none) for ``track --skeleton limited.urdf``. ``export`` writes a track (or
-any mocap CSV of the skeleton) as BVH for Blender / MotionBuilder (:func:`training.mocap.save_bvh`). Bad
+tracks in the skeleton's ``dof_names`` order (see :mod:`training.mocap`; ``--hold-static`` holds the
+rotation channels the file never moves at their value). ``fit`` learns an action model (Rius eq. 1-3,
+:mod:`training.fit`) from performances of one action and saves it as ``.npz`` (:mod:`priors.action`);
+``inspect`` prints its summary and saves the plots of Rius Fig. 1 (:mod:`training.plots`). ``fit-dynamics``
+learns per-DOF step stds and the constant-velocity α (:mod:`training.dynamics`) for ``python -m torchpf
+track --dynamics dyn.npz``. ``fit-limits`` writes the skeleton again with joint limits learned from the
+performances' range of motion (:mod:`training.limits`; a converted BVH has none) for ``track --skeleton
+limited.urdf``. ``export`` writes a track (or any mocap CSV of the skeleton) as BVH for Blender /
+MotionBuilder (:func:`training.mocap.save_bvh`). Bad
 input ends with a one-line ``error:`` message on stderr and exit status 2, Ctrl-C with ``interrupted`` and
 status 130; every command takes ``--threads N`` and ``--debug`` (:mod:`torchpf.cli`). Each command is one
 subparser with its own ``--help``; more commands plug in the same way through :func:`build_parser`.
@@ -101,7 +101,7 @@ def _convert(args: argparse.Namespace) -> int:
     bvh = read_bvh(args.file)
     if args.scale is None:
         args.scale = _infer_scale(bvh, args.file)
-    urdf, skel, motion, held = convert_bvh(bvh, args.scale, hold_static=not args.keep_static)
+    urdf, skel, motion, static = convert_bvh(bvh, args.scale, hold_static=args.hold_static)
     out = Path(args.out_dir)
     urdf_path, csv_path = out / "skeleton.urdf", out / f"{Path(args.file).stem}.csv"
     write_text_atomic(urdf_path, urdf)
@@ -110,10 +110,11 @@ def _convert(args: argparse.Namespace) -> int:
         f"wrote {urdf_path} ({len(skel.joint_names)} joints, {len(skel.dof_names)} DOFs) and {csv_path} "
         f"({motion.n_frames} frames at {motion.fps:.6g} fps)"
     )
-    if held:
+    if static:
+        what = "held at their values" if args.hold_static else "left free (--hold-static holds them)"
         print(
-            f"{len(held)} rotation channels never move in this file (the rig does not animate them): held at "
-            f"their values, e.g. {', '.join(list(held)[:3])} (--keep-static keeps them free)"
+            f"{len(static)} rotation channels never move in this file (the rig does not animate them, e.g. "
+            f"{', '.join(list(static)[:3])}): {what}"
         )
     print(
         "the skeleton has no joint limits (BVH has none): 'python -m training fit-limits' learns them from "
@@ -294,10 +295,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     convert.add_argument("--out-dir", required=True, metavar="DIR", help="output folder (created if missing)")
     convert.add_argument(
-        "--keep-static",
+        "--hold-static",
         action="store_true",
-        help="keep free the rotation channels the file never moves (default: held at their value, the rig "
-        "does not animate them; training.mocap.static_channels)",
+        help="hold the rotation channels the file never moves (the rig does not animate them) at their value "
+        "in the URDF (training.mocap.static_channels); default: every channel free",
     )
     add_runtime_options(convert)
     convert.set_defaults(func=_convert)

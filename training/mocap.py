@@ -51,13 +51,16 @@ slightly, e.g. a wrist that wraps, and FK is periodic anyway), prismatic ones
 ``+-torchpf.kinematics.urdf.ROOT_TRANSLATION_LIMIT``. Values are never wrapped or clipped here.
 
 **Channels the rig does not animate.** A BVH exporter writes three rotation channels for every joint, and a
-rig animates only some: in every CMU clip the same 22 of the 96 channels (the hip and collar bones, two of
-each wrist's three, the hand tips) hold one value for the whole file, whoever the performer. A tracker
-searching them moves the hips and shoulders off the pelvis and the collar to fit mask noise.
-:func:`convert_bvh` (``python -m training convert``; ``hold_static=False`` / ``--keep-static`` keeps them
-free) finds them in the file's own motion (:func:`static_channels`: posture DOFs only, at least
-:data:`STATIC_MIN_FRAMES` frames, never all of them) and writes each as a limit range of one value, which the
-filters, the refinement and the smoothing hold (a DOF with ``lower == upper`` is frozen).
+rig animates only some: in every CMU clip the same 20 of the 96 channels (the hip and collar bones, two of
+each wrist's three, the hand tips) hold one value for the whole file, whoever the performer.
+:func:`convert_bvh` with ``hold_static=True`` (``python -m training convert --hold-static``) finds them in the
+file's own motion (:func:`static_channels`: posture DOFs only, at least :data:`STATIC_MIN_FRAMES` frames,
+never all of them) and writes each as a limit range of one value, which the filters, the refinement and the
+smoothing hold (a DOF with ``lower == upper`` is frozen). Not the default: on the foreign renders of the 11
+CMU clips (``track``'s defaults) it changed the noisy error by nothing measurable (84.1 -> 83.7 mm) and made
+the tracker lose a hand or a walk's limb on clean masks more often (2.6-4.2 % of frames against 0 % on the
+same draws; BENCHMARKS.md): the extra collar and hip rotations give the refinement room that the capsule body,
+not the truth, needs.
 
 **Capsules.** Each bone gets radius ``0.15 x`` its length clipped to ``[0.01, 0.08]`` m unless ``radii``
 (child joint name -> radius in m) says otherwise.
@@ -769,7 +772,7 @@ def convert_bvh(
     scale: float = 1.0,
     *,
     radii: Mapping[str, float] | None = None,
-    hold_static: bool = True,
+    hold_static: bool = False,
 ) -> tuple[str, Skeleton, Motion, dict[str, float]]:
     """A BVH file as ``python -m training convert`` turns it into a tracking skeleton.
 
@@ -778,18 +781,19 @@ def convert_bvh(
         scale: metres per file unit (CMU: ``CMU_SCALE``).
         radii: as :func:`bvh_to_urdf`.
         hold_static: write the channels the file never moves (:func:`static_channels`) as limits of one
-            value, so that a tracker holds them (module docstring); False keeps every channel free.
+            value, so that a tracker holds them (module docstring); default False: every channel free.
 
     Returns:
-        ``(urdf, skel, motion, held)``: the URDF text, its skeleton, the motion in ``skel.dof_names`` order
-        (:func:`bvh_motion`) and ``{dof name: held value}``.
+        ``(urdf, skel, motion, static)``: the URDF text, its skeleton, the motion in ``skel.dof_names`` order
+        (:func:`bvh_motion`) and ``{dof name: value}`` of the channels the file never moves (held in the URDF
+        only with ``hold_static``).
     """
     bvh = _as_bvh(bvh)
     urdf = bvh_to_urdf(bvh, scale, radii=radii)
     skel = skeleton_from_urdf(bvh, urdf)
     motion = bvh_motion(bvh, scale, dof_names=skel.dof_names)
-    held = static_channels(skel, motion) if hold_static else {}
-    if held:
+    held = static_channels(skel, motion)
+    if held and hold_static:
         urdf = relimit_urdf(urdf, {n: (v, v) for n, v in held.items()}, source=str(bvh.path))
         skel = skeleton_from_urdf(bvh, urdf)
     return urdf, skel, motion, held
@@ -808,8 +812,8 @@ def load_bvh(
         path: the BVH file.
         scale: metres per file unit (CMU: ``CMU_SCALE`` = 0.056444).
         radii: capsule radius (m) per child joint name (default: :func:`default_radii`).
-        hold_static: hold the channels the file never moves at their value (:func:`convert_bvh`, what
-            ``python -m training convert`` writes); default False: the file's rig as it is.
+        hold_static: hold the channels the file never moves at their value (:func:`convert_bvh`,
+            ``python -m training convert --hold-static``); default False: the file's rig as it is.
 
     Returns:
         ``(skel, motion)``: ``skel`` a :class:`torchpf.Skeleton` whose ``joint_names`` are the BVH joints and

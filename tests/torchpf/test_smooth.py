@@ -12,6 +12,7 @@ from torchpf import Skeleton, metrics
 from torchpf.assets import path
 from torchpf.camera import camera_ring
 from torchpf.io import read_mocap_csv
+from torchpf.observations import Silhouettes
 from torchpf.smooth import TrajectorySmoother
 from torchpf.synth import synthesize
 from torchpf.tracker import Tracker
@@ -110,6 +111,30 @@ def test_held_dofs_and_non_finite_frames(skel):
     assert torch.isfinite(out.x[finite]).all()
     assert torch.equal(out.x[finite, held], x[finite, held])
     assert out.windows == 2  # [0, 7) and [8, 20)
+
+
+class _Offsets(nn.Module):
+    """A flat cue that records the outline offsets of the silhouettes it reads."""
+
+    def forward(self, x, obs):
+        self.seen = obs.offset
+        return x.new_zeros(x.shape[:-1])
+
+
+def test_the_masks_outline_offsets_reach_the_cue(skel):
+    """Frames with an outline offset (``Tracker(boundary_offset=...)``) keep it in the smoothed windows; a
+    frame without one reads as 0 px."""
+    masks = torch.zeros(3, 12, 16)
+    masks[:, 4:8, 6:10] = 1.0
+    offsets = [torch.tensor([1.0, -1.0, 0.5]), None, torch.tensor([0.0, 2.0, -0.5])]
+    frames = [Silhouettes(masks, offset=o) for o in offsets]
+    cue = _Offsets()
+    x = torch.zeros(3, len(skel.dof_names), dtype=torch.float64)
+    TrajectorySmoother(skel, cue=cue, sigma=0.02, steps=1)(x, frames)
+    want = torch.stack([offsets[0], torch.zeros(3), offsets[2]])
+    assert torch.equal(cue.seen.reshape(3, 3), want)
+    TrajectorySmoother(skel, cue=cue, sigma=0.02, steps=1)(x, [Silhouettes(masks)] * 3)
+    assert cue.seen is None  # no frame has one: the cue reads the masks as they are
 
 
 @pytest.mark.parametrize("cue", [Quadratic, QuadraticWithGrad], ids=["autograd", "own_gradient"])

@@ -239,7 +239,7 @@ def _still_chest(n_frames: int, move_x: bool = True) -> str:
 def test_channels_that_never_move_are_held_at_their_value(tmp_path):
     path = tmp_path / "clip.bvh"
     path.write_text(_still_chest(STATIC_MIN_FRAMES))
-    urdf, skel, motion, held = convert_bvh(path)
+    urdf, skel, motion, held = convert_bvh(path, hold_static=True)
     # the root's constant Z rotation places the body: only posture DOFs are judged
     assert held == {"Chest_Zrotation": pytest.approx(math.radians(15))}
     d = skel.dof_names.index("Chest_Zrotation")
@@ -248,10 +248,11 @@ def test_channels_that_never_move_are_held_at_their_value(tmp_path):
     free = [n for n in skel.dof_names if n != "Chest_Zrotation" and n.endswith("rotation")]
     assert all(float(skel.upper[skel.dof_names.index(n)]) == pytest.approx(REVOLUTE_LIMIT) for n in free)
     assert torch.equal(Skeleton.from_urdf(urdf).upper, skel.upper)  # the URDF text says it
-    # what load_bvh gives by default, and convert_bvh when asked: the file's rig as it is
+    # by default (load_bvh, convert_bvh): the file's rig as it is, the still channels only reported
     raw, _ = load_bvh(path)
     assert float(raw.upper[d]) == pytest.approx(REVOLUTE_LIMIT)
-    assert convert_bvh(path, hold_static=False)[3] == {}
+    _, free, _, found = convert_bvh(path)
+    assert found == held and torch.equal(free.upper, raw.upper)
     same, _ = load_bvh(path, hold_static=True)
     assert torch.equal(same.upper, skel.upper)
 
@@ -271,7 +272,9 @@ def test_nothing_is_held_without_evidence(tmp_path, frames, move_x, why):
 def test_cmu_rig_channels_that_never_move_are_the_same_for_every_performer():
     # two performers (subjects 07 and 35): what convert holds is the rig's, not one performance's (20 of
     # the 96 channels; 22 without the rest pose of frame 0, which turns the hand tips once)
-    held = [convert_bvh(CMU_DIR / f"{clip}.bvh", CMU_SCALE)[3] for clip in ("07_01", "35_02")]
+    held = [
+        convert_bvh(CMU_DIR / f"{clip}.bvh", CMU_SCALE, hold_static=True)[3] for clip in ("07_01", "35_02")
+    ]
     assert held[0].keys() == held[1].keys() and len(held[0]) == 20
     assert held[0] == pytest.approx(held[1], abs=1e-12)
     assert {n.rsplit("_", 1)[0] for n in held[0]} == {

@@ -64,20 +64,17 @@ def test_convert_small_file(tmp_path, capsys):
 def test_convert_cmu_clip(tmp_path, capsys):
     assert main(["convert", str(CMU_CLIP), "--scale", str(CMU_SCALE), "--out-dir", str(tmp_path)]) == 0
     _check_outputs(CMU_CLIP, tmp_path, CMU_SCALE)
-    assert "20 rotation channels never move in this file" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "20 rotation channels never move in this file" in out and "--hold-static holds them" in out
+    disk = Skeleton.from_urdf(tmp_path / "skeleton.urdf")
+    assert not bool((disk.lower == disk.upper).any())  # every channel free, as in the file
+    # --hold-static: those channels held at their value
+    argv = ["convert", str(CMU_CLIP), "--scale", str(CMU_SCALE), "--out-dir", str(tmp_path), "--hold-static"]
+    assert main(argv) == 0
+    assert "held at their values" in capsys.readouterr().out
     disk = Skeleton.from_urdf(tmp_path / "skeleton.urdf")
     held = disk.lower == disk.upper
     assert int(held.sum()) == 20 and disk.dof_names[int(held.nonzero()[0])] == "LHipJoint_Zrotation"
-    # --keep-static: every channel free, as in the file
-    assert (
-        main(
-            ["convert", str(CMU_CLIP), "--scale", str(CMU_SCALE), "--out-dir", str(tmp_path), "--keep-static"]
-        )
-        == 0
-    )
-    assert "never move" not in capsys.readouterr().out
-    disk = Skeleton.from_urdf(tmp_path / "skeleton.urdf")
-    assert not bool((disk.lower == disk.upper).any())
 
 
 @pytest.mark.parametrize(

@@ -153,3 +153,36 @@ def test_tracker_measures_the_offset_before_each_frame(human, scene):
         frames, init=scene["pose"], calibrate=False
     )
     assert all(o is None for o in lik.seen)  # off by default
+
+
+def test_the_smoothing_reads_the_masks_as_they_are(human, scene, monkeypatch):
+    """The filter's cues see the measured offsets, the smoothing does not: smoothed on the offsets too, the
+    noisy foreign renders tracked worse (BENCHMARKS.md, "The rig's unanimated channels, and the masks'
+    outline offset, as defaults")."""
+    import torchpf.tracker as tracker_module
+    from torchpf.smooth import TrajectorySmoother
+
+    measured, smoothed = [], []
+    measure = tracker_module._with_outline_offset
+
+    def spy(*a):
+        out = measure(*a)
+        measured.append(out.offset)
+        return out
+
+    smooth = TrajectorySmoother.forward
+
+    def seen(self, x, observations):
+        smoothed.extend(getattr(observations[t], "offset", None) for t in range(len(observations)))
+        return smooth(self, x, observations)
+
+    monkeypatch.setattr(tracker_module, "_with_outline_offset", spy)
+    monkeypatch.setattr(TrajectorySmoother, "forward", seen)
+    fat = np.stack([cv2.dilate(m, _disk(2)) for m in scene["masks"]])
+    frames = [Silhouettes(scene["masks"]), Silhouettes(fat), Silhouettes(scene["masks"])]
+    tracker = Tracker(human, scene["rig"], n_particles=30, fps=30, boundary_offset=True, progress=False)
+    result = tracker.track(frames, init=scene["pose"], calibrate=False)
+    assert result.filtered_angles is not None and torch.isfinite(result.angles).all()
+    assert len(measured) == len(smoothed) == 3
+    assert float(measured[1].min()) > 1.0  # the filter saw the dilated frame as fattened
+    assert all(o is None for o in smoothed)
