@@ -232,7 +232,8 @@ class TrajectorySmoother(nn.Module):
 
 def _stack(observations: list, batch: int) -> Silhouettes | Tensor | None:
     """``(T B, V, H, W)`` silhouettes of a window's frames (a :class:`~torchpf.observations.Frame` gives its
-    ``silhouettes``; a missing frame has every camera invalid, so only the prior sees it), or tensors
+    ``silhouettes``; a missing frame has every camera invalid, so only the prior sees it; the frames' outline
+    offsets kept, 0 px where a frame has none), or tensors
     ``(..., E)`` per frame stacked to ``(T B, E)`` for a cue that reads tensors; None when no frame of the
     window has one."""
     obs = [getattr(o, "silhouettes", o) for o in observations]
@@ -244,6 +245,8 @@ def _stack(observations: list, batch: int) -> Silhouettes | Tensor | None:
             raise ValueError("a frame without an observation is only understood with silhouettes")
         return torch.cat([torch.as_tensor(o).reshape(batch, -1) for o in obs])
     V, H, W = ref.masks.shape[-3:]
+    # the masks' outline offset (Silhouettes.offset) where a frame has one, 0 px for the others
+    offsets = any(o is not None and o.offset is not None for o in obs)
     masks, valid, offset = [], [], []
     for o in obs:
         if o is None:
@@ -252,14 +255,10 @@ def _stack(observations: list, batch: int) -> Silhouettes | Tensor | None:
         else:
             masks.append(o.masks.reshape(-1, V, H, W).expand(batch, -1, -1, -1))
             valid.append(o.valid.reshape(-1, V).expand(batch, -1))
-        # the masks' outline offset where a frame has one (Tracker(boundary_offset=...)), else none (0 px)
-        has = o is not None and o.offset is not None
-        offset.append(
-            o.offset.reshape(-1, V).expand(batch, -1)
-            if has
-            else torch.zeros(batch, V, device=ref.masks.device)
-        )
-    any_offset = any(o is not None and o.offset is not None for o in obs)
+        if offsets:
+            none = o is None or o.offset is None
+            zero = torch.zeros(batch, V, device=ref.masks.device)
+            offset.append(zero if none else o.offset.reshape(-1, V).expand(batch, -1))
     return Silhouettes(
-        torch.cat(masks), valid=torch.cat(valid), offset=torch.cat(offset) if any_offset else None
+        torch.cat(masks), valid=torch.cat(valid), offset=torch.cat(offset) if offsets else None
     )

@@ -18,10 +18,10 @@ learns per-DOF step stds and the constant-velocity α (:mod:`training.dynamics`)
 track --dynamics dyn.npz``. ``fit-limits`` writes the skeleton again with joint limits learned from the
 performances' range of motion (:mod:`training.limits`; a converted BVH has none) for ``track --skeleton
 limited.urdf``. ``export`` writes a track (or any mocap CSV of the skeleton) as BVH for Blender /
-MotionBuilder (:func:`training.mocap.save_bvh`). Bad
-input ends with a one-line ``error:`` message on stderr and exit status 2, Ctrl-C with ``interrupted`` and
-status 130; every command takes ``--threads N`` and ``--debug`` (:mod:`torchpf.cli`). Each command is one
-subparser with its own ``--help``; more commands plug in the same way through :func:`build_parser`.
+MotionBuilder (:func:`training.mocap.save_bvh`). Bad input ends with a one-line ``error:`` message on stderr
+and exit status 2, Ctrl-C with ``interrupted`` and status 130; every command takes ``--threads N`` and
+``--debug`` (:mod:`torchpf.cli`). Each command is one subparser with its own ``--help``; more commands plug
+in the same way through :func:`build_parser`.
 """
 
 from __future__ import annotations

@@ -57,10 +57,10 @@ each wrist's three, the hand tips) hold one value for the whole file, whoever th
 file's own motion (:func:`static_channels`: posture DOFs only, at least :data:`STATIC_MIN_FRAMES` frames,
 never all of them) and writes each as a limit range of one value, which the filters, the refinement and the
 smoothing hold (a DOF with ``lower == upper`` is frozen). Not the default: on the foreign renders of the 11
-CMU clips (``track``'s defaults) it changed the noisy error by nothing measurable (84.1 -> 83.7 mm) and made
-the tracker lose a hand or a walk's limb on clean masks more often (2.6-4.2 % of frames against 0 % on the
-same draws; BENCHMARKS.md): the extra collar and hip rotations give the refinement room that the capsule body,
-not the truth, needs.
+CMU clips (``track``'s defaults) it changed the noisy error by nothing measurable (84.1 -> 83.9 mm) and made
+the tracker lose a hand or a limb on clean masks more often (2.7-3.8 % of frames failed against 0 % with the
+same tracker seeds; BENCHMARKS.md), presumably because the collar and hip rotations let the capsule body,
+fitted on one frame, make up for its differences from the performer's.
 
 **Capsules.** Each bone gets radius ``0.15 x`` its length clipped to ``[0.01, 0.08]`` m unless ``radii``
 (child joint name -> radius in m) says otherwise.
