@@ -1036,6 +1036,17 @@ class ForeignConfig:
             raise ValueError(f"joints must be 'body' or 'all', got {self.joints!r}")
 
 
+def mpjpe_standard_error(sds: Sequence[float], runs: int) -> float:
+    """Standard error (m) of a mean over ``n`` clips of per-clip MPJPEs, each the mean of ``runs`` runs
+    whose spread (sample std) is ``sds[c]``: ``sqrt(sum_c sds[c]^2 / runs) / n``. It is what the tracker's
+    randomness alone moves the mean by, for the same masks: two setups run on the same masks whose means
+    differ by less than about twice ``sqrt(se_a^2 + se_b^2)`` are not told apart. NaN with one run."""
+    sds = np.asarray(list(sds), dtype=np.float64)
+    if runs < 2 or len(sds) == 0 or not np.isfinite(sds).all():
+        return math.nan
+    return float(np.sqrt(np.sum(sds**2) / runs) / len(sds))
+
+
 @dataclass
 class ForeignResult:
     """What :func:`run_foreign` returns: ``rows`` one dict per clip x preset x setup (criteria over the runs),
@@ -1066,6 +1077,9 @@ class ForeignResult:
                 ]
                 if sel:
                     mean = {k: float(np.mean([r[k] for r in sel])) for k in keys}
+                    mean["mpjpe_se"] = mpjpe_standard_error(
+                        [r.get("mpjpe_sd", math.nan) for r in sel], self.config.runs
+                    )
                     frames = sum(r["frames"] for r in sel)
                     seconds = sum(r["seconds_per_frame"] * r["frames"] for r in sel)
                     out.append(
@@ -1157,6 +1171,7 @@ def run_foreign(cfg: ForeignConfig, out: str | os.PathLike = "out/foreign", prog
                         bar.update()
                 est = torch.stack(estimates)  # (R, K, J, 3)
                 crit = metrics.evaluate(truth, est, cfg.threshold)
+                per_run = [float(metrics.mpjpe(truth, e)) for e in est]
                 result.rows.append(
                     {
                         "clip": clip,
@@ -1168,6 +1183,8 @@ def run_foreign(cfg: ForeignConfig, out: str | os.PathLike = "out/foreign", prog
                         "joints": len(joints),
                         "camera_radius": seq.info["camera_radius"],
                         "mpjpe": crit["mpjpe"],
+                        # the runs' spread (m): what the tracker's randomness alone moves one clip's MPJPE by
+                        "mpjpe_sd": float(np.std(per_run, ddof=1)) if len(per_run) > 1 else math.nan,
                         "rmse": crit["rmse"],
                         "failure_rate": crit["failure_rate"],
                         "frame_failure": float(
@@ -1224,6 +1241,9 @@ def foreign_markdown(result: ForeignResult) -> str:
         "",
         "### Summary (mean over the clips)",
         "",
+        "MPJPE ± its standard error from the runs' spread (the tracker's randomness on the same masks; "
+        "with 2 runs or more).",
+        "",
         "| Setup | "
         + " | ".join(f"{p} MPJPE (mm) | {p} frames failed (%)" for p in cfg.presets)
         + " | fps |",
@@ -1236,7 +1256,8 @@ def foreign_markdown(result: ForeignResult) -> str:
             m = next(
                 r for r in means if r["preset"] == preset and r["setup"] == setup and r["particles"] == budget
             )
-            cells.append(f"{m['mpjpe'] * 1000:.0f} | {m['frame_failure'] * 100:.0f}")
+            se = "" if math.isnan(m["mpjpe_se"]) else f" ± {m['mpjpe_se'] * 1000:.1f}"
+            cells.append(f"{m['mpjpe'] * 1000:.0f}{se} | {m['frame_failure'] * 100:.0f}")
             fps.append(m["fps"])
         parts.append(f"| {result.label(setup, budget)} | " + " | ".join(cells) + f" | {np.mean(fps):.1f} |")
     for preset in cfg.presets:

@@ -194,6 +194,8 @@ def test_foreign_evaluation_smoke(tmp_path):
             "3",
             "--particles",
             "30",
+            "--runs",
+            "2",
         ]
     )
     cfg = ev.foreign_config_from_args(args)
@@ -203,11 +205,31 @@ def test_foreign_evaluation_smoke(tmp_path):
     for row in result.rows:
         assert row["clip"] == "16_46" and row["frames"] == 3 and row["joints"] == 15
         assert 0 <= row["frame_failure"] <= 1 and 0 < row["mpjpe"] < 1 and row["mean_ess"] >= 1
+        assert 0 <= row["mpjpe_sd"] < 1  # two runs: their spread
+    for mean, row in zip(result.means(), result.rows, strict=True):  # one clip: the SE is sd / sqrt(runs)
+        assert mean["mpjpe_se"] == pytest.approx(row["mpjpe_sd"] / math.sqrt(2))
     paths = ev.write_foreign_outputs(result, tmp_path / "out")
     table = paths["table"].read_text()
-    assert "Foreign renders" in table and "| before |" in table and "**mean**" in table
+    assert "Foreign renders" in table and "| before |" in table and "**mean**" in table and " ± " in table
     with pytest.raises(ValueError, match="unknown setup"):
         ev.ForeignConfig(setups=("tomorrow",))
+
+
+def test_mpjpe_standard_error_matches_the_spread_of_simulated_means():
+    """Clips of different difficulty, each run ``R`` times with its own run-to-run std: the standard error
+    is the std of the mean over clips across many repetitions of the whole evaluation (1 % tolerance with
+    100,000 repetitions: the sample std's relative error is ~0.2 %)."""
+    from benchmarks.evaluate import mpjpe_standard_error
+
+    rng = np.random.default_rng(0)
+    level = rng.uniform(0.03, 0.15, 11)  # per-clip MPJPE (m): fixed by the masks, not by the runs
+    spread = rng.uniform(0.002, 0.04, 11)  # per-clip run-to-run std (m)
+    runs = 2
+    means = (level + spread * rng.standard_normal((100_000, runs, 11))).mean(1).mean(-1)
+    assert mpjpe_standard_error(spread, runs) == pytest.approx(means.std(), rel=0.01)
+    assert math.isnan(mpjpe_standard_error(spread, 1)) and math.isnan(
+        mpjpe_standard_error([0.01, math.nan], 2)
+    )
 
 
 @needs_cmu
