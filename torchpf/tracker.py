@@ -596,11 +596,12 @@ class Tracker(nn.Module):
                 the end.
             calibrate: fit the body's widths and scale to frame 0's silhouettes at the initial pose first
                 (:func:`torchpf.detect.fit_body_to_frame`) and track on the fitted body (``result.skeleton``),
-                starting from the pose refined with it. ``None`` (default): only when the body looks
-                uncalibrated (:func:`torchpf.detect.looks_uncalibrated`: a converted skeleton's stick-figure
-                capsules), with a warning; on foreign renders of 3 CMU clips it took the hybrid tracker from
-                60 to 47 mm on clean masks and 157 to 120 mm on noisy ones (BENCHMARKS.md). Needs cameras and
-                a silhouette likelihood.
+                starting from the initial pose (not the fit's refined one, which one frame's mask defects
+                move). ``None`` (default): only when the body looks uncalibrated
+                (:func:`torchpf.detect.looks_uncalibrated`: a converted skeleton's stick-figure capsules),
+                with a warning; on foreign renders of 3 CMU clips it took the hybrid tracker from 60 to 47 mm
+                on clean masks and 157 to 120 mm on noisy ones (BENCHMARKS.md). Needs cameras and a
+                silhouette likelihood.
 
         Returns:
             :class:`TrackResult`; ``no_evidence`` flags the frames without usable observations.
@@ -675,10 +676,13 @@ class Tracker(nn.Module):
         if how != "auto" and self._calibrates(calibrate, frames[0], init=how):
             from torchpf.detect import fit_body_to_frame
 
-            fitted, report = fit_body_to_frame(self.skeleton, self.cameras, frames[0], init)
+            fitted, _ = fit_body_to_frame(self.skeleton, self.cameras, frames[0], init)
+            # The track starts at the pose given, not at the fit's: refined on one frame with defects, the
+            # fit's pose drifts (60-65 mm on noisy foreign renders, legs crossed in 3-4 of 11 clips) where the
+            # body it fits barely moves (BENCHMARKS.md, "Where the track starts after the frame-0 fit").
             result = self.with_skeleton(fitted).track(
                 sequence,
-                init=report.poses[0].to(torch.float64),
+                init=fitted.clamp(init),  # outside the limits it was warned about above
                 generator=generator,
                 seed=seed,
                 fps=fps,

@@ -351,9 +351,20 @@ def test_track_fits_an_uncalibrated_body_at_the_initial_pose(case):
     tracking (warned; result.skeleton is the fitted body); calibrate=False tracks the body as given."""
     tracker = Tracker(case.skeleton, case.cameras, n_particles=60, fps=30.0, progress=False)
     frames = case.frames[:4]
-    with pytest.warns(UserWarning, match="looks uncalibrated.*at the given pose"):
-        fitted = tracker.track(frames, init=case.angles[0])
+    starts = []
+    spread = Tracker.initial_particles
+
+    def seen(self, init, generator):  # the pose the particles are drawn around
+        starts.append(init.clone())
+        return spread(self, init, generator)
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(Tracker, "initial_particles", seen)
+        with pytest.warns(UserWarning, match="looks uncalibrated.*at the given pose"):
+            fitted = tracker.track(frames, init=case.angles[0])
     assert fitted.skeleton is not case.skeleton and not looks_uncalibrated(fitted.skeleton)
+    # the track starts at the pose given, not at the fit's refined one (which one frame's defects move)
+    assert len(starts) == 1 and torch.equal(starts[0].double(), case.angles[0].double())
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # no guess made, no warning
         plain = tracker.track(frames, init=case.angles[0], calibrate=False)
