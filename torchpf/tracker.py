@@ -678,8 +678,9 @@ class Tracker(nn.Module):
 
             fitted, _ = fit_body_to_frame(self.skeleton, self.cameras, frames[0], init)
             # The track starts at the pose given, not at the fit's: refined on one frame with defects, the
-            # fit's pose drifts (60-65 mm on noisy foreign renders, legs crossed in 3-4 of 11 clips) where the
-            # body it fits barely moves (BENCHMARKS.md, "Where the track starts after the frame-0 fit").
+            # fit's pose drifts (60-65 mm on noisy foreign renders, legs crossed in 3-4 of 11 clips); the
+            # track needs only the body from the fit (BENCHMARKS.md, "Where the track starts after the
+            # frame-0 fit").
             result = self.with_skeleton(fitted).track(
                 sequence,
                 init=fitted.clamp(init),  # outside the limits it was warned about above
