@@ -189,6 +189,10 @@ class TrajectorySmoother(nn.Module):
             raise ValueError(f"x must be (T, ..., D), got shape {tuple(x.shape)}")
         if len(observations) != len(x):
             raise ValueError(f"{len(observations)} observations for {len(x)} frames")
+        if x.device != self.lr.device:  # the cue's buffers and the prior live on the module's device
+            raise ValueError(
+                f"x is on {x.device} but the smoother is on {self.lr.device}: move one (smoother.to(...))"
+            )
         T, D = len(x), x.shape[-1]
         lead = x.shape[1:-1]
         flat = x.reshape(T, -1, D)

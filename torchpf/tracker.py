@@ -730,7 +730,9 @@ class Tracker(nn.Module):
             if self.smooth if self.smooth is not None else self._reads_silhouettes():
                 filtered = per_frame["estimates"]
                 moved = _Frames(len(frames), lambda t: _to_device(frames[t], self.device, self.dtype))
-                per_frame["estimates"] = self._smoother()(filtered, moved).x
+                # the run's rows sit on the CPU; the smoother works where the particles did
+                smoothed = self._smoother()(filtered.to(self.device), moved).x
+                per_frame["estimates"] = smoothed.to("cpu", filtered.dtype)
         except BaseException:  # the filter's rows so far stay in OUT.partial
             if writer is not None:
                 writer.abort()

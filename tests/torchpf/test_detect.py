@@ -4,6 +4,7 @@ Observations come from the foreign renderer (benchmarks/foreign.py via benchmark
 torchpf.synth: the tracker's model and the rendered body share no geometry.
 """
 
+import copy
 import math
 import warnings
 from pathlib import Path
@@ -346,10 +347,14 @@ def test_cli_init_auto_without_truth(case, tmp_path, capsys):
     assert "fitted the body to frame 0" in capsys.readouterr().out
 
 
-def test_track_fits_an_uncalibrated_body_at_the_initial_pose(case):
+def test_track_fits_an_uncalibrated_body_at_the_initial_pose(case, device):
     """A converted skeleton's stick-figure body is fitted to frame 0's masks at the given pose before
-    tracking (warned; result.skeleton is the fitted body); calibrate=False tracks the body as given."""
-    tracker = Tracker(case.skeleton, case.cameras, n_particles=60, fps=30.0, progress=False)
+    tracking (warned; result.skeleton is the fitted body); calibrate=False tracks the body as given. On
+    ``device``: the fit runs on CPU copies, the track (and its smoothing) where the particles are."""
+    skeleton = copy.deepcopy(case.skeleton)  # a tracker moves its modules: the module's fixture stays put
+    tracker = Tracker(
+        skeleton, copy.deepcopy(case.cameras), n_particles=60, fps=30.0, progress=False, device=device
+    )
     frames = case.frames[:4]
     starts = []
     spread = Tracker.initial_particles
@@ -364,15 +369,15 @@ def test_track_fits_an_uncalibrated_body_at_the_initial_pose(case):
             fitted = tracker.track(frames, init=case.angles[0])
     assert fitted.skeleton is not case.skeleton and not looks_uncalibrated(fitted.skeleton)
     # the track starts at the pose given, not at the fit's refined one (which one frame's defects move)
-    assert len(starts) == 1 and torch.equal(starts[0].double(), case.angles[0].double())
+    assert len(starts) == 1 and torch.equal(starts[0].cpu().double(), case.angles[0].double())
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # no guess made, no warning
         plain = tracker.track(frames, init=case.angles[0], calibrate=False)
-    assert plain.skeleton is case.skeleton
+    assert plain.skeleton is tracker.skeleton
     truth = case.skeleton.fk(case.angles[:4].double())[:, case.joints]
 
     def mpjpe(result):
-        est = result.skeleton.fk(result.angles.double())[:, case.joints]
+        est = result.skeleton.cpu().double().fk(result.angles.cpu().double())[:, case.joints]
         return float((est - truth).norm(dim=-1).mean())
 
     assert mpjpe(fitted) < 0.08

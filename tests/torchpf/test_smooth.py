@@ -95,6 +95,15 @@ def test_windows_agree_with_one_window(skel, device):
     assert float((bare(z, list(z)).x - whole.x).abs().max()) > 0.05  # 0.08 here
 
 
+def test_a_track_on_another_device_is_a_clear_error(skel):
+    """The trajectory must be where the smoother's cue and prior are (the tracker moves its CPU rows to
+    its device first); elsewhere the error names both devices, not a failed operation deep in the cue."""
+    z = observations(skel, 10)
+    smoother = TrajectorySmoother(skel, cue=QuadraticWithGrad(), sigma=0.02, steps=5)
+    with pytest.raises(ValueError, match=r"x is on meta but the smoother is on cpu"):
+        smoother(z.to("meta"), list(z))
+
+
 def test_held_dofs_and_non_finite_frames(skel):
     """A DOF with sigma 0 stays where the track put it; a NaN frame stays NaN and splits the sequence."""
     T = 20
