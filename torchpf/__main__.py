@@ -92,7 +92,7 @@ def _parser() -> argparse.ArgumentParser:
         "--no-calibrate",
         action="store_true",
         help="track on the skeleton as given, even when its body looks uncalibrated (by default such a "
-        "body is fitted to frame 0's masks first, its URDF written next to --out)",
+        "body is fitted to the first frames' masks first, its URDF written next to --out)",
     )
     tr.add_argument("--no-recovery", action="store_true", help="do not re-acquire a lost track")
     tr.add_argument(
@@ -388,7 +388,7 @@ def _track(args) -> int:
     if result.skeleton is not skel:  # the body was fitted first: the track's angles belong to it
         fitted = os.path.splitext(args.out)[0] + "_fitted.urdf"
         result.skeleton.save_urdf(fitted)
-        print(f"fitted the body to frame 0's masks; wrote {fitted} (the track's skeleton)")
+        print(f"fitted the body to the first frames' masks; wrote {fitted} (the track's skeleton)")
     if seq.truth is not None:
         from torchpf import metrics
 

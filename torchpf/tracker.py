@@ -539,10 +539,18 @@ class Tracker(nn.Module):
         return self.skeleton.clamp(x0)
 
     #: ``init="auto"`` on an uncalibrated body: frames tracked to fit the body again at the tracked poses
-    #: (:meth:`_auto_refit`; 0 or 1: keep the body fitted at the detected pose). 16 against 8 on the 11
+    #: (:meth:`_refit`; 0 or 1: keep the body fitted at the detected pose). 16 against 8 on the 11
     #: foreign clips: 53 against 56 mm with clean masks, 110 against 123 with noisy ones, for ~10 s more
     #: start-up per sequence on a 2-core VM (BENCHMARKS.md).
     auto_refit_frames: int = 16
+
+    #: A given initial pose on an uncalibrated body: frames tracked on the body fitted to frame 0, then the
+    #: body fitted again to those frames at the tracked poses and the whole sequence tracked on it
+    #: (:meth:`_refit`; 0 or 1: track on the frame-0 body). One frame's mask defects (a 1-px erosion or
+    #: dilation is a third of a limb at 160x120) make a one-frame fit's radii off by a factor of 2-3 on noisy
+    #: masks; 30 frames average the defects out (BENCHMARKS.md, "The body refitted over the first 30 tracked
+    #: frames").
+    refit_frames: int = 30
 
     def with_skeleton(self, skeleton) -> Tracker:
         """The same tracker (all keywords alike) on another skeleton, e.g. a body fitted to the masks. It runs
@@ -587,7 +595,7 @@ class Tracker(nn.Module):
                 (:func:`torchpf.detect.looks_uncalibrated`, warned) the track runs on the fitted body,
                 returned as ``result.skeleton``: fitted at the detected pose, then again at the poses
                 tracked over the first :attr:`auto_refit_frames` frames where that explains them better
-                (:meth:`_auto_refit`).
+                (:meth:`_refit`).
             generator: random generator; default one seeded with ``seed`` (0). A generator on another device
                 than the tracker's seeds a new one there (:func:`torchpf.distributions.as_generator`).
             fps: frame rate of the result (default: from the sequence's times, else 30).
@@ -595,9 +603,10 @@ class Tracker(nn.Module):
                 ``<out>.partial`` holds every finished frame if the run stops, ``out`` appears complete at
                 the end.
             calibrate: fit the body's widths and scale to frame 0's silhouettes at the initial pose first
-                (:func:`torchpf.detect.fit_body_to_frame`) and track on the fitted body (``result.skeleton``),
-                starting from the initial pose (not the fit's refined one, which one frame's mask defects
-                move). ``None`` (default): only when the body looks uncalibrated
+                (:func:`torchpf.detect.fit_body_to_frame`), then again to the first :attr:`refit_frames`
+                frames at the poses tracked on that body (:meth:`_refit`), and track on the refitted body
+                (``result.skeleton``), starting from the initial pose (not a fit's refined one, which one
+                frame's mask defects move). ``None`` (default): only when the body looks uncalibrated
                 (:func:`torchpf.detect.looks_uncalibrated`: a converted skeleton's stick-figure capsules),
                 with a warning; on foreign renders of 3 CMU clips it took the hybrid tracker from 60 to 47 mm
                 on clean masks and 157 to 120 mm on noisy ones (BENCHMARKS.md). Needs cameras and a
@@ -658,7 +667,9 @@ class Tracker(nn.Module):
         elif isinstance(init, str) and init == "auto":
             pose, fitted = self._auto_init(frames, calibrate)
             if fitted is not None:
-                fitted, pose, _ = self._auto_refit(fitted, pose, frames, seed, fps)
+                fitted, pose, _ = self._refit(
+                    fitted, pose, frames, seed, fps, self.auto_refit_frames, gate=True
+                )
                 tracker = self.with_skeleton(fitted)
                 result = tracker.track(
                     sequence, init=pose, generator=generator, seed=seed, fps=fps, out=out, calibrate=False
@@ -677,6 +688,7 @@ class Tracker(nn.Module):
             from torchpf.detect import fit_body_to_frame
 
             fitted, _ = fit_body_to_frame(self.skeleton, self.cameras, frames[0], init)
+            fitted, _, _ = self._refit(fitted, fitted.clamp(init), frames, seed, fps, self.refit_frames)
             # The track starts at the pose given, not at the fit's: refined on one frame with defects, the
             # fit's pose drifts (60-65 mm on noisy foreign renders, legs crossed in 3-4 of 11 clips); the
             # track needs only the body from the fit (BENCHMARKS.md, "Where the track starts after the
@@ -831,10 +843,14 @@ class Tracker(nn.Module):
             if not looks_uncalibrated(self.skeleton) or not _evidence(frame, {"silhouettes"}):
                 return False  # a calibrated body, or nothing in frame 0 to fit it to
             where = {"truth": "true", "pose": "given", "auto": "found"}.get(init, init)
+            k = self.auto_refit_frames if init == "auto" else self.refit_frames
+            again = f", then again to the first {k} frames at the poses tracked on it" if k > 1 else ""
+            again += " where that explains them better" if again and init == "auto" else ""
             warnings.warn(
                 "the skeleton's body looks uncalibrated (its torso capsules are thinner than 4 % of its "
-                f"stature); tracking with the body fitted to frame 0's masks at the {where} pose; calibrate "
-                "it once with 'python -m torchpf calibrate' (or pass calibrate=False) to skip this guess",
+                f"stature); tracking with the body fitted to frame 0's masks at the {where} pose{again}; "
+                "calibrate it once with 'python -m torchpf calibrate' (or pass calibrate=False) to skip "
+                "this guess",
                 stacklevel=3,
             )
         return True
@@ -857,21 +873,27 @@ class Tracker(nn.Module):
         pose, fitted, _ = detector.fit(frames[0], det=det, motion=motion)
         return pose, fitted if self._calibrates(calibrate, frames[0], init="auto") else None
 
-    def _auto_refit(self, fitted, pose: torch.Tensor, frames, seed: int | None, fps: float | None):
-        """``(body, pose, info)``: the body ``init="auto"`` tracks on, and its pose at frame 0.
+    def _refit(
+        self, fitted, pose: torch.Tensor, frames, seed: int | None, fps: float | None, k: int, *, gate=False
+    ):
+        """``(body, pose, info)``: the body fitted again at the poses tracked over the first ``k`` frames.
 
-        The body fitted at the detected pose carries that pose's error through the whole track (on foreign
-        renders the gap to a truth-initialised track stayed 13-16 mm on every part of 60 frames). So the
-        first ``k = auto_refit_frames`` frames are tracked on it, the body is fitted again at the tracked
-        poses (:func:`torchpf.detect.fit_body_to_frame`, one pose per frame), the same frames are tracked
-        on the refitted body, and it is kept where its log evidence ``log p(z_1..k)`` is the higher: on
-        noisy masks the tracked poses are off by the noisy track's error, and a refit taken always lost
-        12 mm there. On the 11 foreign clips this took ``--init auto`` from 58 to 54 mm on clean masks and
-        131 to 127 mm on noisy ones with 8 frames (BENCHMARKS.md); 16 frames (the default) do better
-        still. The passes use ``seed`` (not a caller's generator), so the two bodies are compared on the
-        same random numbers. ``info``: ``frames``, ``log_evidence``
-        (first body, refitted body), ``refit`` (kept)."""
-        k = min(int(self.auto_refit_frames), len(frames))
+        A body fitted on frame 0 alone carries that frame's errors through the whole track: the detected
+        pose's error with ``init="auto"`` (on foreign renders the gap to a truth-initialised track stayed
+        13-16 mm on every part of 60 frames), the mask defects of one frame with a given pose (noisy foreign
+        renders: group radii off by a factor of 2-3). So the first ``k`` frames are tracked on ``fitted``
+        from ``pose``, and the body is fitted again to the frames with silhouettes among them at the
+        tracked poses (:func:`torchpf.detect.fit_body_to_frame`, one pose per frame, each refined).
+
+        ``gate`` (``init="auto"``): the same frames are tracked on the refitted body too, and it is kept
+        only where its log evidence ``log p(z_1..k)`` is the higher; ``pose`` then becomes the refit's
+        refined frame-0 pose. On noisy masks an auto-initialised track's poses are off, and a refit taken
+        always lost 12 mm there; 16 frames with the gate took ``--init auto`` from 58 to 53 mm (clean) and
+        131 to 110 mm (noisy) (BENCHMARKS.md). Without the gate (a given pose) the refit is taken and
+        ``pose`` is returned as it came. The passes use ``seed`` (not a caller's generator), so gated bodies
+        are compared on the same random numbers. ``info``: ``frames``, ``refit`` (taken), and with the gate
+        ``log_evidence`` (first body, refitted body)."""
+        k = min(int(k), len(frames))
         if k < 2:
             return fitted, pose, {"frames": k, "refit": False}
         from torchpf.detect import fit_body_to_frame
@@ -880,11 +902,23 @@ class Tracker(nn.Module):
         before = self.with_skeleton(fitted).track(
             first_frames, init=pose, seed=seed, fps=fps, calibrate=False
         )
-        refit, report = fit_body_to_frame(fitted, self.cameras, first_frames, before.angles)
-        start = report.poses[0].to(torch.float64)
+        # frames the fit can read: silhouettes in them and a finite tracked pose
+        used = [
+            t
+            for t in range(k)
+            if _evidence(first_frames[t], {"silhouettes"}) and bool(torch.isfinite(before.angles[t]).all())
+        ]
+        if len(used) < 2:
+            return fitted, pose, {"frames": len(used), "refit": False}
+        refit, report = fit_body_to_frame(
+            fitted, self.cameras, [first_frames[t] for t in used], before.angles[used].double()
+        )
+        if not gate:
+            return refit, pose, {"frames": len(used), "refit": True}
+        start = report.poses[0].to(torch.float64) if used[0] == 0 else pose
         after = self.with_skeleton(refit).track(first_frames, init=start, seed=seed, fps=fps, calibrate=False)
         keep = after.log_evidence > before.log_evidence  # NaN (no evidence) keeps the first body
-        info = {"frames": k, "log_evidence": (before.log_evidence, after.log_evidence), "refit": keep}
+        info = {"frames": len(used), "log_evidence": (before.log_evidence, after.log_evidence), "refit": keep}
         return (refit, start, info) if keep else (fitted, pose, info)
 
     def _recovery(self, fps: float = 30.0):

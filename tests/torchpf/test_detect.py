@@ -13,6 +13,7 @@ import pytest
 import torch
 
 from torchpf.detect import PersonDetector, looks_uncalibrated, visual_hull
+from torchpf.observations import Frame
 from torchpf.tracker import Tracker
 
 CMU = Path(__file__).resolve().parents[2].parent / "shared" / "mocap" / "cmu"
@@ -224,13 +225,16 @@ def test_body_fit_takes_one_starting_pose_per_frame(case):
 
 
 def test_auto_init_refits_the_body_where_it_explains_the_first_frames_better(case):
-    """Tracker._auto_refit: the body is fitted again at the poses tracked over the first frames and kept
-    only where its log evidence over those frames is the higher; 0 frames keeps the first fit."""
+    """Tracker._refit with the gate (init="auto"): the body is fitted again at the poses tracked over the
+    first frames and kept only where its log evidence over those frames is the higher; 0 frames keeps the
+    first fit."""
     tracker = Tracker(case.skeleton, case.cameras, n_particles=100, fps=30.0, progress=False)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the uncalibrated-body warning, expected here
         pose, fitted = tracker._auto_init(case.frames)
-        body, start, info = tracker._auto_refit(fitted, pose, case.frames, 0, 30.0)
+        body, start, info = tracker._refit(
+            fitted, pose, case.frames, 0, 30.0, tracker.auto_refit_frames, gate=True
+        )
     assert tracker.auto_refit_frames == 16 and info["frames"] == min(16, len(case.frames))
     before, after = info["log_evidence"]
     assert info["refit"] == (after > before)
@@ -238,8 +242,7 @@ def test_auto_init_refits_the_body_where_it_explains_the_first_frames_better(cas
         assert body is not fitted and not torch.equal(start, pose)
     else:
         assert body is fitted and start is pose
-    tracker.auto_refit_frames = 0
-    assert tracker._auto_refit(fitted, pose, case.frames, 0, 30.0)[:2] == (fitted, pose)
+    assert tracker._refit(fitted, pose, case.frames, 0, 30.0, 0, gate=True)[:2] == (fitted, pose)
 
 
 def test_init_from_truth_csv_or_error(case, tmp_path):
@@ -344,32 +347,46 @@ def test_cli_init_auto_without_truth(case, tmp_path, capsys):
         warnings.simplefilter("ignore")
         assert main([*args, "--init", "auto", "--particles", "60"]) == 0
     assert out.is_file() and (tmp_path / "track_fitted.urdf").is_file()
-    assert "fitted the body to frame 0" in capsys.readouterr().out
+    assert "fitted the body to the first frames" in capsys.readouterr().out
 
 
 def test_track_fits_an_uncalibrated_body_at_the_initial_pose(case, device):
-    """A converted skeleton's stick-figure body is fitted to frame 0's masks at the given pose before
-    tracking (warned; result.skeleton is the fitted body); calibrate=False tracks the body as given. On
-    ``device``: the fit runs on CPU copies, the track (and its smoothing) where the particles are."""
+    """A converted skeleton's stick-figure body is fitted to frame 0's masks at the given pose, then again
+    to the first frames at the poses tracked on it (warned; result.skeleton is the refitted body);
+    calibrate=False tracks the body as given. On ``device``: the fits run on CPU copies, the track (and
+    its smoothing) where the particles are."""
+    import torchpf.detect as detect
+
     skeleton = copy.deepcopy(case.skeleton)  # a tracker moves its modules: the module's fixture stays put
     tracker = Tracker(
         skeleton, copy.deepcopy(case.cameras), n_particles=60, fps=30.0, progress=False, device=device
     )
     frames = case.frames[:4]
-    starts = []
-    spread = Tracker.initial_particles
+    starts, fits = [], []
+    spread, fit = Tracker.initial_particles, detect.fit_body_to_frame
 
     def seen(self, init, generator):  # the pose the particles are drawn around
         starts.append(init.clone())
         return spread(self, init, generator)
 
+    def fitting(skeleton, cameras, obs, pose, **options):
+        fits.append((obs, torch.as_tensor(pose).clone()))
+        fits[-1] += fit(skeleton, cameras, obs, pose, **options)
+        return fits[-1][2:]
+
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(Tracker, "initial_particles", seen)
+        patch.setattr(detect, "fit_body_to_frame", fitting)
         with pytest.warns(UserWarning, match="looks uncalibrated.*at the given pose"):
             fitted = tracker.track(frames, init=case.angles[0])
-    assert fitted.skeleton is not case.skeleton and not looks_uncalibrated(fitted.skeleton)
-    # the track starts at the pose given, not at the fit's refined one (which one frame's defects move)
-    assert len(starts) == 1 and torch.equal(starts[0].cpu().double(), case.angles[0].double())
+    assert not looks_uncalibrated(fitted.skeleton)
+    # first frame 0 at the given pose; then the 4 frames at the poses a track on that body found
+    assert tracker.refit_frames >= 4 and len(fits) == 2
+    assert fits[0][0] is frames[0] and torch.equal(fits[0][1].double(), case.angles[0].double())
+    assert len(fits[1][0]) == 4 and fits[1][1].shape == (4, case.angles.shape[1])
+    assert fitted.skeleton is fits[1][2]  # the track ran on the refitted body
+    # both tracks start at the pose given, not at a fit's refined one (which one frame's defects move)
+    assert len(starts) == 2 and all(torch.equal(x.cpu().double(), case.angles[0].double()) for x in starts)
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # no guess made, no warning
         plain = tracker.track(frames, init=case.angles[0], calibrate=False)
@@ -381,3 +398,19 @@ def test_track_fits_an_uncalibrated_body_at_the_initial_pose(case, device):
         return float((est - truth).norm(dim=-1).mean())
 
     assert mpjpe(fitted) < 0.08
+    tracker.refit_frames = 0  # the body fitted to frame 0 alone
+    fits.clear()
+    with pytest.MonkeyPatch.context() as patch, warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the uncalibrated-body warning, expected here
+        patch.setattr(detect, "fit_body_to_frame", fitting)
+        once = tracker.track(frames, init=case.angles[0])
+    assert len(fits) == 1 and once.skeleton is not fitted.skeleton
+    # a frame without masks among the first ones is left out of the refit (the others are fitted)
+    tracker.refit_frames = 30
+    fits.clear()
+    holed = [frames[0], frames[1], Frame(), frames[3]]
+    with pytest.MonkeyPatch.context() as patch, warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        patch.setattr(detect, "fit_body_to_frame", fitting)
+        tracker.track(holed, init=case.angles[0])
+    assert len(fits) == 2 and [id(f) for f in fits[1][0]] == [id(holed[t]) for t in (0, 1, 3)]
