@@ -177,8 +177,9 @@ class TrajectorySmoother(nn.Module):
         return torch.where(stuck.view(1, B, 1), x, best), first, torch.where(stuck, first, best_e)
 
     def forward(self, x: Tensor, observations: Sequence[Silhouettes]) -> SmoothResult:
-        """Smooth ``x (T, ..., D)`` (a track's estimates: frames first, then any batch of sequences) given
-        the per-frame observations the cue reads (``T`` of them, each batched as the poses' ``...``:
+        """Smooth ``x (T, ..., D)`` (a track's estimates: frames first, then any batch of sequences, on the
+        smoother's device) given the per-frame observations the cue reads (``T`` of them, each batched as
+        the poses' ``...``:
         :class:`~torchpf.observations.Silhouettes` ``(..., V, H, W)`` or the
         :class:`~torchpf.observations.Frame` holding them, or a tensor ``(..., E)`` for a cue that reads
         ``(T B, E)``; read one window at a time, so a lazy sequence works). A frame whose silhouettes are
