@@ -888,8 +888,9 @@ class Tracker(nn.Module):
         ``gate`` (``init="auto"``): the same frames are tracked on the refitted body too, and it is kept
         only where its log evidence ``log p(z_1..k)`` is the higher; ``pose`` then becomes the refit's
         refined frame-0 pose. On noisy masks an auto-initialised track's poses are off, and a refit taken
-        always lost 12 mm there; 16 frames with the gate took ``--init auto`` from 58 to 53 mm (clean) and
-        131 to 110 mm (noisy) (BENCHMARKS.md). Without the gate (a given pose) the refit is taken and
+        always lost 12 mm there; with the gate 8 frames took ``--init auto`` from 58 to 54 mm (clean) and
+        131 to 127 mm (noisy), and 16 frames (the default) did better still (53 / 110 against 56 / 123
+        with 8; BENCHMARKS.md). Without the gate (a given pose) the refit is taken and
         ``pose`` is returned as it came. The passes use ``seed`` (not a caller's generator), so gated bodies
         are compared on the same random numbers. ``info``: ``frames``, ``refit`` (taken), and with the gate
         ``log_evidence`` (first body, refitted body)."""
