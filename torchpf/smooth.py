@@ -252,6 +252,7 @@ def _stack(observations: list, batch: int) -> Silhouettes | Tensor | None:
     V, H, W = ref.masks.shape[-3:]
     # the masks' outline offset (Silhouettes.offset) where a frame has one, 0 px for the others
     offsets = any(o is not None and o.offset is not None for o in obs)
+    zero = torch.zeros(batch, V, device=ref.masks.device) if offsets else None
     masks, valid, offset = [], [], []
     for o in obs:
         if o is None:
@@ -262,7 +263,6 @@ def _stack(observations: list, batch: int) -> Silhouettes | Tensor | None:
             valid.append(o.valid.reshape(-1, V).expand(batch, -1))
         if offsets:
             none = o is None or o.offset is None
-            zero = torch.zeros(batch, V, device=ref.masks.device)
             offset.append(zero if none else o.offset.reshape(-1, V).expand(batch, -1))
     return Silhouettes(
         torch.cat(masks), valid=torch.cat(valid), offset=torch.cat(offset) if offsets else None

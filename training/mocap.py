@@ -792,11 +792,11 @@ def convert_bvh(
     urdf = bvh_to_urdf(bvh, scale, radii=radii)
     skel = skeleton_from_urdf(bvh, urdf)
     motion = bvh_motion(bvh, scale, dof_names=skel.dof_names)
-    held = static_channels(skel, motion)
-    if held and hold_static:
-        urdf = relimit_urdf(urdf, {n: (v, v) for n, v in held.items()}, source=str(bvh.path))
+    static = static_channels(skel, motion)
+    if static and hold_static:
+        urdf = relimit_urdf(urdf, {n: (v, v) for n, v in static.items()}, source=str(bvh.path))
         skel = skeleton_from_urdf(bvh, urdf)
-    return urdf, skel, motion, held
+    return urdf, skel, motion, static
 
 
 def load_bvh(
