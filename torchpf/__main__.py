@@ -4,7 +4,7 @@
         --out track.csv [--init auto|truth|POSE.csv] [--fps F]
     python -m torchpf evaluate track.csv [run2.csv ...] --truth truth.csv --skeleton S.urdf
     python -m torchpf calibrate SEQ_DIR --skeleton S.urdf --out FITTED.urdf [--frames K] \\
-        [--init auto|truth|POSE.csv]
+        [--init auto|truth|POSE.csv] [--outline-offsets PX]
     python -m torchpf masks VIDEO_OR_FOLDER... --cameras cameras.yaml --out SEQ_DIR \\
         [--background-frames N | --clean-plate IMG...]
     python -m torchpf render TRACK.csv --skeleton S.urdf --sequence SEQ_DIR --out overlay.mp4
@@ -132,6 +132,14 @@ def _parser() -> argparse.ArgumentParser:
     )
     ca.add_argument("--fit-lengths", action="store_true", help="also fit one length factor per bone group")
     ca.add_argument("--iterations", type=int, default=400, help="most optimiser steps (default 400)")
+    ca.add_argument(
+        "--outline-offsets",
+        type=float,
+        metavar="PX",
+        help="also fit each mask's outline offset (px added to every projected radius, held near 0 by "
+        "this std: a segmenter that thins or fattens one camera's masks), so that it does not thin or "
+        "fatten the body (torchpf.calibrate.fit_body view_offset_sigma; default: masks as they are)",
+    )
     ca.add_argument("--no-progress", action="store_true")
     add_runtime_options(ca)
 
@@ -451,6 +459,8 @@ def _calibrate(args) -> int:
         raise CliError(f"sequence directory not found: {args.sequence}")
     if args.frames < 1:
         raise CliError(f"--frames must be >= 1, got {args.frames}")
+    if args.outline_offsets is not None and not args.outline_offsets > 0:
+        raise CliError(f"--outline-offsets must be > 0 px, got {args.outline_offsets}")
     seq = read_sequence(args.sequence)
     k = min(args.frames, len(seq.masks))
     if k == 0:
@@ -482,6 +492,7 @@ def _calibrate(args) -> int:
         frames_used=k,
         fit_lengths=args.fit_lengths,
         iterations=args.iterations,
+        view_offset_sigma=args.outline_offsets,
         progress=not args.no_progress,
     )
     fitted.save_urdf(args.out)

@@ -21,6 +21,13 @@ within ~10 cm per joint) is enough:
   narrows stage by stage (coarse to fine, each stage with a smaller Adam step and early stopping), and the
   last stage is the pixel-accurate area match alone. A weak penalty keeps the joints near the initial poses
   (silhouettes leave some rotations free).
+* **Outline offsets** (``view_offset_sigma``): a segmenter's masks are often thinner or fatter in one
+  camera or frame than in the next (a threshold, a 1-px erosion or dilation: at 160x120 a third of a limb).
+  Fitted as they are, the shared radii follow whichever masks pull hardest. With the option each mask gets
+  its own outline offset, pixels added to every projected radius in it, centred to mean 0 over the masks
+  and weakly held at 0: the radii explain what the masks share, the offsets what one mask has alone. On 30
+  noisy foreign-rendered frames at the true poses the fitted body's IoU against the *clean* masks rose
+  from 0.74-0.83 to 0.82-0.86 on the 11 CMU clips (clean-mask fits: 0.85-0.89).
 
 Masks larger than ``max_size`` pixels are fitted at a reduced resolution (area-averaged, so the targets
 keep sub-pixel edge information); the reported IoU is at that resolution.
@@ -48,7 +55,7 @@ import torch
 
 from torchpf.camera import CameraRig
 from torchpf.devices import on_cpu
-from torchpf.geometry import project_capsules, sample_in_capsules
+from torchpf.geometry import Capsules2D, project_capsules, sample_in_capsules
 from torchpf.kinematics.symmetry import mirror_limbs
 from torchpf.observations import Silhouettes
 
@@ -243,7 +250,9 @@ class CalibrationReport:
     ``/`` (display only); ``radii_before``, ``radii_after`` (G,) m (a group's geometric mean before);
     ``scale`` the global length factor; ``lengths`` (G,) bone-length factors (ones unless
     ``fit_lengths``); ``iou_before``, ``iou_after`` camera name -> silhouette IoU over the frames used;
-    ``poses`` (F, D) the refined poses; ``loss`` the objective per iteration; ``iterations``; ``seconds``.
+    ``poses`` (F, D) the refined poses; ``loss`` the objective per iteration; ``iterations``; ``seconds``;
+    ``offsets`` (F, V) the masks' fitted outline offsets (px of the working grid, 0 for a missing mask)
+    with ``view_offset_sigma``, else None.
     """
 
     groups: list[list[int]]
@@ -258,6 +267,7 @@ class CalibrationReport:
     loss: list[float] = field(default_factory=list)
     iterations: int = 0
     seconds: float = 0.0
+    offsets: torch.Tensor | None = None
 
     def table(self) -> str:
         """The fitted radii per group and the IoU per camera, as Markdown tables."""
@@ -274,11 +284,16 @@ class CalibrationReport:
             "",
             f"global scale {self.scale:.4f}",
             "",
-            "| camera | IoU before | IoU after |",
-            "|---|---:|---:|",
+            "| camera | IoU before | IoU after |"
+            + (" outline offset (px) |" if self.offsets is not None else ""),
+            "|---|---:|---:|" + ("---:|" if self.offsets is not None else ""),
         ]
-        for name in self.iou_before:
-            lines.append(f"| {name} | {self.iou_before[name]:.3f} | {self.iou_after[name]:.3f} |")
+        for v, name in enumerate(self.iou_before):
+            row = f"| {name} | {self.iou_before[name]:.3f} | {self.iou_after[name]:.3f} |"
+            if self.offsets is not None:  # mean and spread over the frames
+                off = self.offsets[:, v]
+                row += f" {float(off.mean()):+.2f} +- {float(off.std(unbiased=False)):.2f} |"
+            lines.append(row)
         lines.append(
             f"\n{self.iterations} iterations in {self.seconds:.1f} s, "
             f"loss {self.loss[0]:.4g} -> {self.loss[-1]:.4g}"
@@ -339,6 +354,7 @@ def fit_body(
     length_sigma: float = 0.1,
     scale_sigma: float | None = None,
     distance_weight: float = 0.05,
+    view_offset_sigma: float | None = None,
     max_size: int = 200,
     groups: list[list[int]] | None = None,
     tol: float = 1e-4,
@@ -370,6 +386,11 @@ def fit_body(
             ``pose_lr`` that of the poses (rad / m).
         pose_sigma: std (m) of the joints around the initial poses' joints (the weak pose penalty).
         distance_weight: weight of the model-to-mask distance term in all stages but the last.
+        view_offset_sigma: ``None`` fits the body to every mask as it is; a number (px of the working
+            grid) also fits each mask's outline offset, pixels added to every projected radius in that mask
+            (an erosion or dilation of one camera's mask, a segmenter's bias), held near 0 by
+            ``1e-3 (d / view_offset_sigma)^2`` and centred to mean 0 over the masks, so that the shared
+            radii explain what the masks have in common and the offsets what one mask has on its own.
         max_size: masks whose larger side exceeds this many pixels are fitted at reduced resolution.
         groups: bone groups overriding :func:`bone_groups`.
         refresh_every: steps between two choices of the pixels scored (:func:`_active_pixels`).
@@ -418,6 +439,8 @@ def fit_body(
 
     log_r = log_r0.clone().requires_grad_(True)
     log_s = torch.zeros((), dtype=dtype, requires_grad=True)
+    fit_offsets = view_offset_sigma is not None
+    raw_offset = torch.zeros(F, V, dtype=dtype, requires_grad=fit_offsets)
     log_l = torch.zeros(G, dtype=dtype, requires_grad=fit_lengths)
     theta0 = skeleton.clamp(poses[idx].to(dtype))
     theta = theta0.clone().requires_grad_(True)
@@ -442,20 +465,32 @@ def fit_body(
     grid = torch.stack([grid_u, grid_v], -1).reshape(-1, 2).to(dtype)
     from torchpf.geometry.chamfer import distance_lookup
 
-    def capsules(joints, radii):
-        return project_capsules(rig, joints[:, bones[:, 0]], joints[:, bones[:, 1]], radii)
+    view_valid = torch.from_numpy(valid).to(dtype)
+
+    def offsets():
+        """(F, V) outline offsets (px), mean 0 over the masks present."""
+        if not fit_offsets:
+            return raw_offset.detach()
+        mean = (raw_offset * view_valid).sum() / view_valid.sum().clamp_min(1.0)
+        return (raw_offset - mean) * view_valid
+
+    def capsules(joints, radii, offset):
+        caps = project_capsules(rig, joints[:, bones[:, 0]], joints[:, bones[:, 1]], radii)
+        grow = offset[..., None]  # (F, V, 1): the same pixels added to every capsule of a mask
+        return Capsules2D(caps.pa, caps.pb, caps.ra + grow, caps.rb + grow, caps.valid)
 
     def refresh(width: float) -> None:
         """The pixels scored for the next steps (:func:`_active_pixels`) and their capsule pairs."""
         with torch.no_grad():
             joints, radii = joints_of(theta, log_s, log_l), (member @ log_r).exp()
             model = _model_masks(skeleton, rig, joints, radii, H, W)
-            caps = capsules(joints, radii)
+            caps = capsules(joints, radii, offsets())
         band = int(math.ceil(width / 2 + 3))
         active = torch.from_numpy(_active_pixels(target.numpy(), model, band) & valid[..., None, None])
         rows = torch.nonzero(active.reshape(-1)).reshape(-1)
         uv, view = grid[rows % (H * W)], rows // (H * W)
-        pix, cap = _capsule_pairs(caps, uv, view, C, width / 2 + 2)
+        reach = width / 2 + 2 + float(offsets().detach().abs().max())
+        pix, cap = _capsule_pairs(caps, uv, view, C, reach)
         pixels.update(uv=uv, view=view, pix=pix, cap=cap, target=target.reshape(-1)[rows].to(dtype))
 
     # distance (px) from each pixel to the silhouette, 0 inside; its zero level is the pixel edge
@@ -465,13 +500,14 @@ def fit_body(
 
     def objective(width: float, dist_w: float):
         joints = joints_of(theta, log_s, log_l)
-        caps = capsules(joints, (member @ log_r).exp())
+        caps = capsules(joints, (member @ log_r).exp(), offsets())
         cov = _coverage(caps, pixels["uv"], pixels["pix"], pixels["cap"], width)
         sq = (cov - pixels["target"]) ** 2
         per_view = sq.new_zeros(F * V).index_add(0, pixels["view"], sq)
         loss = (per_view / area.reshape(-1)).sum() / n_views
         if dist_w > 0:
-            pts, w_area = sample_in_capsules(caps, n_body=8, n_cap=1)  # (F, V, Q, 2), (F, V, Q)
+            grown = Capsules2D(caps.pa, caps.pb, caps.ra.clamp_min(0.0), caps.rb.clamp_min(0.0), caps.valid)
+            pts, w_area = sample_in_capsules(grown, n_body=8, n_cap=1)  # (F, V, Q, 2), (F, V, Q)
             d = torch.stack(
                 [distance_lookup(outside[k], p) for k, p in enumerate(pts.reshape(F * V, -1, 2))]
             ).reshape(w_area.shape)
@@ -483,6 +519,8 @@ def fit_body(
             loss = loss + 1e-3 * (log_l**2).sum() / length_sigma**2
         if scale_sigma is not None:
             loss = loss + 1e-3 * log_s**2 / scale_sigma**2
+        if fit_offsets:
+            loss = loss + 1e-3 * (offsets() ** 2).sum() / n_views / view_offset_sigma**2
         return loss
 
     params = [
@@ -492,6 +530,8 @@ def fit_body(
     ]
     if fit_lengths:
         params.append({"params": [log_l], "lr": 0.2 * lr})
+    if fit_offsets:
+        params.append({"params": [raw_offset], "lr": 0.5})
     opt = torch.optim.Adam(params)
     base_lrs = [g["lr"] for g in opt.param_groups]
     per_stage = max(1, iterations // len(softness))
@@ -550,6 +590,7 @@ def fit_body(
         loss=losses,
         iterations=len(losses),
         seconds=time.perf_counter() - t_start,
+        offsets=offsets().detach().double() if fit_offsets else None,
     )
     return fitted, report
 

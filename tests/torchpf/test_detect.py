@@ -385,6 +385,7 @@ def test_track_fits_an_uncalibrated_body_at_the_initial_pose(case, device):
     assert fits[0][0] is frames[0] and torch.equal(fits[0][1].double(), case.angles[0].double())
     assert len(fits[1][0]) == 4 and fits[1][1].shape == (4, case.angles.shape[1])
     assert fitted.skeleton is fits[1][2]  # the track ran on the refitted body
+    assert fits[1][3].offsets is None  # the masks fitted as they are (refit_view_offset None)
     # both tracks start at the pose given, not at a fit's refined one (which one frame's defects move)
     assert len(starts) == 2 and all(torch.equal(x.cpu().double(), case.angles[0].double()) for x in starts)
     with warnings.catch_warnings():
@@ -405,8 +406,9 @@ def test_track_fits_an_uncalibrated_body_at_the_initial_pose(case, device):
         patch.setattr(detect, "fit_body_to_frame", fitting)
         once = tracker.track(frames, init=case.angles[0])
     assert len(fits) == 1 and once.skeleton is not fitted.skeleton
-    # a frame without masks among the first ones is left out of the refit (the others are fitted)
-    tracker.refit_frames = 30
+    # a frame without masks among the first ones is left out of the refit (the others are fitted); with
+    # refit_view_offset the refit fits an outline offset per mask, the frame-0 fit none
+    tracker.refit_frames, tracker.refit_view_offset = 30, 1.0
     fits.clear()
     holed = [frames[0], frames[1], Frame(), frames[3]]
     with pytest.MonkeyPatch.context() as patch, warnings.catch_warnings():
@@ -414,3 +416,4 @@ def test_track_fits_an_uncalibrated_body_at_the_initial_pose(case, device):
         patch.setattr(detect, "fit_body_to_frame", fitting)
         tracker.track(holed, init=case.angles[0])
     assert len(fits) == 2 and [id(f) for f in fits[1][0]] == [id(holed[t]) for t in (0, 1, 3)]
+    assert fits[0][3].offsets is None and fits[1][3].offsets.shape == (3, len(case.cameras))
