@@ -27,7 +27,7 @@ within ~10 cm per joint) is enough:
   its own outline offset, pixels added to every projected radius in it, centred to mean 0 over the masks
   and weakly held at 0: the radii explain what the masks share, the offsets what one mask has alone. On 30
   noisy foreign-rendered frames at the true poses the fitted body's IoU against the *clean* masks rose
-  from 0.74-0.83 to 0.82-0.86 on the 11 CMU clips (clean-mask fits: 0.85-0.89).
+  from 0.74-0.85 to 0.82-0.87 on the 11 CMU clips (clean-mask fits: 0.85-0.89).
 
 Masks larger than ``max_size`` pixels are fitted at a reduced resolution (area-averaged, so the targets
 keep sub-pixel edge information); the reported IoU is at that resolution.

@@ -555,8 +555,8 @@ class Tracker(nn.Module):
     #: The refit's outline offsets (:func:`torchpf.calibrate.fit_body` ``view_offset_sigma``, px; None: fit
     #: every mask as it is). With 1.0 each mask's own erosion or dilation is fitted beside the shared radii:
     #: on noisy foreign renders the body fitted at the true poses matched the clean masks better (IoU
-    #: 0.74-0.83 -> 0.82-0.86), but the tracks did not gain (noisy draws 0 / 10: 70.1 / 72.0 mm against
-    #: 72.4 / 70.3, frames failed 25 / 20 % against 22 / 18 %; BENCHMARKS.md), so it is an option.
+    #: 0.74-0.85 -> 0.82-0.87), but the tracks did not gain (five noisy draws: 71.6 mm against 71.4, frames
+    #: failed 22.7 against 21.1 %; BENCHMARKS.md, "Outline offsets in the body fit"), so it is an option.
     refit_view_offset: float | None = None
 
     def with_skeleton(self, skeleton) -> Tracker:
