@@ -413,6 +413,8 @@ def fit_body(
     )
     if not idx:
         raise ValueError("fit_body: no frame to fit")
+    if view_offset_sigma is not None and not view_offset_sigma > 0:
+        raise ValueError(f"fit_body: view_offset_sigma must be > 0 px or None, got {view_offset_sigma}")
     raw = list(frames) if not isinstance(frames, (np.ndarray, torch.Tensor)) else frames
     if max(idx) >= min(len(raw), len(poses)) or min(idx) < 0:
         raise ValueError(f"fit_body: frames {idx} out of range ({len(raw)} frames, {len(poses)} poses)")
@@ -530,7 +532,7 @@ def fit_body(
     ]
     if fit_lengths:
         params.append({"params": [log_l], "lr": 0.2 * lr})
-    if fit_offsets:
+    if fit_offsets:  # px: a 1-2 px erosion or dilation is reached within the first stage's steps
         params.append({"params": [raw_offset], "lr": 0.5})
     opt = torch.optim.Adam(params)
     base_lrs = [g["lr"] for g in opt.param_groups]

@@ -228,6 +228,8 @@ def test_view_offsets_absorb_one_masks_erosion_or_dilation(human, scene):
     # mean |log| radius error of the observable groups (0.02 against 0.25 when written)
     assert radius_error(report) < 0.05 and radius_error(plain) > 0.15
     assert "outline offset (px)" in report.table()
+    with pytest.raises(ValueError, match="view_offset_sigma"):
+        fit_body(scene["stick"], scene["rig"], masks, scene["poses"], view_offset_sigma=0.0)
 
 
 def test_cli_calibrate(scene, tmp_path, capsys):
