@@ -251,7 +251,7 @@ class CalibrationReport:
     ``scale`` the global length factor; ``lengths`` (G,) bone-length factors (ones unless
     ``fit_lengths``); ``iou_before``, ``iou_after`` camera name -> silhouette IoU over the frames used;
     ``poses`` (F, D) the refined poses; ``loss`` the objective per iteration; ``iterations``; ``seconds``;
-    ``offsets`` (F, V) the masks' fitted outline offsets (px of the working grid, 0 for a missing mask)
+    ``offsets`` (F, V) the masks' fitted outline offsets (px of the working grid, NaN for a missing mask)
     with ``view_offset_sigma``, else None.
     """
 
@@ -290,8 +290,8 @@ class CalibrationReport:
         ]
         for v, name in enumerate(self.iou_before):
             row = f"| {name} | {self.iou_before[name]:.3f} | {self.iou_after[name]:.3f} |"
-            if self.offsets is not None:  # mean and spread over the frames
-                off = self.offsets[:, v]
+            if self.offsets is not None:  # mean and spread over the frames with a mask
+                off = self.offsets[:, v][torch.isfinite(self.offsets[:, v])]
                 row += f" {float(off.mean()):+.2f} +- {float(off.std(unbiased=False)):.2f} |"
             lines.append(row)
         lines.append(
@@ -592,7 +592,8 @@ def fit_body(
         loss=losses,
         iterations=len(losses),
         seconds=time.perf_counter() - t_start,
-        offsets=offsets().detach().double() if fit_offsets else None,
+        # NaN where a mask is missing: no offset was fitted there
+        offsets=torch.where(view_valid > 0, offsets().detach(), math.nan).double() if fit_offsets else None,
     )
     return fitted, report
 

@@ -228,6 +228,14 @@ def test_view_offsets_absorb_one_masks_erosion_or_dilation(human, scene):
     # mean |log| radius error of the observable groups (0.02 against 0.25 when written)
     assert radius_error(report) < 0.05 and radius_error(plain) > 0.15
     assert "outline offset (px)" in report.table()
+    # a missing mask has no offset (NaN), and the camera's figure is over the masks it has
+    holed = [list(masks[0]), list(masks[1])]
+    holed[1][2] = None
+    some = fit_body(
+        scene["stick"], scene["rig"], holed, scene["poses"][:2], iterations=40, view_offset_sigma=1.0
+    )[1]
+    assert torch.isnan(some.offsets[1, 2]) and int(torch.isfinite(some.offsets).sum()) == 5
+    assert "nan" not in some.table()
     with pytest.raises(ValueError, match="view_offset_sigma"):
         fit_body(scene["stick"], scene["rig"], masks, scene["poses"], view_offset_sigma=0.0)
 
