@@ -249,7 +249,8 @@ class CalibrationReport:
     Fields: ``groups`` (G) lists of bone indices and ``labels`` (G) their child joint names joined by
     ``/`` (display only); ``radii_before``, ``radii_after`` (G,) m (a group's geometric mean before);
     ``scale`` the global length factor; ``lengths`` (G,) bone-length factors (ones unless
-    ``fit_lengths``); ``iou_before``, ``iou_after`` camera name -> silhouette IoU over the frames used;
+    ``fit_lengths``); ``iou_before``, ``iou_after`` camera name -> silhouette IoU over the frames used (the
+    body alone, without the outline offsets: what a tracker draws);
     ``poses`` (F, D) the refined poses; ``loss`` the objective per iteration; ``iterations``; ``seconds``;
     ``offsets`` (F, V) the masks' fitted outline offsets (px of the working grid, NaN for a missing mask)
     with ``view_offset_sigma``, else None.
