@@ -487,12 +487,13 @@ def fit_body(
         with torch.no_grad():
             joints, radii = joints_of(theta, log_s, log_l), (member @ log_r).exp()
             model = _model_masks(skeleton, rig, joints, radii, H, W)
-            caps = capsules(joints, radii, offsets())
+            off = offsets()
+            caps = capsules(joints, radii, off)
         band = int(math.ceil(width / 2 + 3))
         active = torch.from_numpy(_active_pixels(target.numpy(), model, band) & valid[..., None, None])
         rows = torch.nonzero(active.reshape(-1)).reshape(-1)
         uv, view = grid[rows % (H * W)], rows // (H * W)
-        reach = width / 2 + 2 + float(offsets().detach().abs().max())
+        reach = width / 2 + 2 + float(off.abs().max())
         pix, cap = _capsule_pairs(caps, uv, view, C, reach)
         pixels.update(uv=uv, view=view, pix=pix, cap=cap, target=target.reshape(-1)[rows].to(dtype))
 

@@ -399,21 +399,21 @@ def test_track_fits_an_uncalibrated_body_at_the_initial_pose(case, device):
         return float((est - truth).norm(dim=-1).mean())
 
     assert mpjpe(fitted) < 0.08
+
+    def spied(sequence):  # the fits of one more track, the uncalibrated-body warning expected
+        fits.clear()
+        with pytest.MonkeyPatch.context() as patch, warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            patch.setattr(detect, "fit_body_to_frame", fitting)
+            return tracker.track(sequence, init=case.angles[0])
+
     tracker.refit_frames = 0  # the body fitted to frame 0 alone
-    fits.clear()
-    with pytest.MonkeyPatch.context() as patch, warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # the uncalibrated-body warning, expected here
-        patch.setattr(detect, "fit_body_to_frame", fitting)
-        once = tracker.track(frames, init=case.angles[0])
+    once = spied(frames)
     assert len(fits) == 1 and once.skeleton is not fitted.skeleton
     # a frame without masks among the first ones is left out of the refit (the others are fitted); with
     # refit_view_offset the refit fits an outline offset per mask, the frame-0 fit none
     tracker.refit_frames, tracker.refit_view_offset = 30, 1.0
-    fits.clear()
     holed = [frames[0], frames[1], Frame(), frames[3]]
-    with pytest.MonkeyPatch.context() as patch, warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        patch.setattr(detect, "fit_body_to_frame", fitting)
-        tracker.track(holed, init=case.angles[0])
+    spied(holed)
     assert len(fits) == 2 and [id(f) for f in fits[1][0]] == [id(holed[t]) for t in (0, 1, 3)]
     assert fits[0][3].offsets is None and fits[1][3].offsets.shape == (3, len(case.cameras))
