@@ -18,6 +18,18 @@ motion, so a run's swing is kept where the masks show it, while a frame whose ma
 is held by its neighbours. With a per-frame cue whose errors are independent across frames, this averages
 them out; a one-sided window (a filter) cannot.
 
+**Where the descent starts.** The energy has its optimum near the truth but the descent is local: on the
+noisy foreign renders, smoothing from the *true* trajectory ended 39-54 mm from the truth (four clips), and
+still 41-50 mm from the truth with 0.15 rad of independent noise added to every angle of every frame, while
+from the filter's track it ended 56-152 mm away. A filter's track has frames a mask defect threw off (a
+limb 10-30 cm away for one or two frames), and the prior bends their neighbours towards them, out of the
+cue's reach. So each finite piece of the track is first replaced by its running median over ``median``
+frames per DOF (along the unwrapped angles; the window cut short at the ends), which drops such frames and
+keeps a monotone swing as it is; the track as given stays a candidate and is kept where its energy is lower.
+On the same filter tracks (11 CMU clips, two draws of noisy masks, one run each) the smoothed tracks went
+from 69.5 / 71.3 to 65.8 / 64.9 mm, none worse by more than 0.3 mm (35_24: 152 -> 96 mm); 9 frames gave
+65.5 / 64.9.
+
 Descent is the refiner's projected, damped Adam (:func:`torchpf.refine.damped_adam_step`) on all frames at
 once, keep-best per trajectory (the total ``E`` never increases), joint limits enforced. Long sequences go
 in overlapping windows of ``window`` frames (memory is one window's masks): each window after the first
@@ -89,6 +101,8 @@ class TrajectorySmoother(nn.Module):
             (:class:`~torchpf.refine.Refiner`).
         window: frames per window (memory: one window's masks and ``window`` poses per sequence).
         overlap: frames a window re-optimises of the one before (>= 2: its two anchors are among them).
+        median: the descent starts from the track's running median over this many frames (odd; 1: from the
+            track itself); the track as given is kept where its energy is lower (module docstring).
     """
 
     def __init__(
@@ -105,6 +119,7 @@ class TrajectorySmoother(nn.Module):
         damping: float = 0.1,
         window: int = 64,
         overlap: int = 8,
+        median: int = 5,
     ):
         super().__init__()
         self.cue, lr = descent_setup(
@@ -112,6 +127,8 @@ class TrajectorySmoother(nn.Module):
         )
         if not (overlap >= 2 and window > overlap):
             raise ValueError(f"need window > overlap >= 2, got window={window}, overlap={overlap}")
+        if not (int(median) == median and median >= 1 and median % 2 == 1):
+            raise ValueError(f"median must be an odd number of frames >= 1, got {median}")
         D = len(skeleton.lower)
         sigma = torch.as_tensor(sigma, dtype=torch.float64).to(skeleton.lower.device)
         if sigma.dim() == 0:
@@ -120,6 +137,7 @@ class TrajectorySmoother(nn.Module):
             raise ValueError(f"sigma must be a float or a ({D},) tensor of finite values >= 0")
         self.skeleton = skeleton
         self.steps, self.window, self.overlap = int(steps), int(window), int(overlap)
+        self.median = int(median)
         self.damping = float(damping)
         self.register_buffer("lr", torch.where(sigma == 0, 0.0, lr.to(sigma.device)))
         # 1 / sigma^2 of the prior; a held DOF has no step, so its weight only needs to be finite
@@ -135,8 +153,11 @@ class TrajectorySmoother(nn.Module):
         a = step[1:] - step[:-1]
         return 0.5 * (a.square() * self.precision.to(x)).sum((0, -1))
 
-    def _window(self, x: Tensor, obs: Silhouettes, anchors: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
-        """Descend on ``x (T, B, D)`` (obs batched ``(T B, V, H, W)``); ``(best x, E before, E after)``."""
+    def _window(
+        self, x: Tensor, obs: Silhouettes, anchors: Tensor | None, start: Tensor | None = None
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """Descend on ``x (T, B, D)`` (obs batched ``(T B, V, H, W)``) from ``start`` (default ``x``);
+        ``(best x, E before, E after)``, ``E before`` at ``x``, the best of ``x`` and the iterates kept."""
         T, B, D = x.shape
         lr = self.lr.to(x)
         damp = damping_factor(self.damping, lr)
@@ -159,8 +180,13 @@ class TrajectorySmoother(nn.Module):
             return energy, g
 
         cur = self.skeleton.clamp(x.detach())
+        best, best_e = cur, torch.full((B,), math.inf, dtype=x.dtype, device=x.device)
+        first = None
+        if start is not None:  # the track as given is a candidate too: its energy is E before
+            first, _ = energy_and_grad(cur)
+            best_e = torch.where(torch.isnan(first), best_e, first)
+            cur = self.skeleton.clamp(start.detach())
         m, v = torch.zeros_like(cur), torch.zeros_like(cur)
-        best, best_e, first = cur, torch.full((B,), math.inf, dtype=x.dtype, device=x.device), None
         for step in range(self.steps + 1):
             e, grad = energy_and_grad(cur)
             first = e if first is None else first
@@ -210,7 +236,13 @@ class TrajectorySmoother(nn.Module):
             end = t
             while end < T and finite[end]:
                 end += 1
-            start = t  # a finite piece [t, end): windows over it
+            # the descent starts from the piece's running median: a frame that a mask defect threw off (a
+            # limb 10-30 cm away for a frame or two) otherwise holds its neighbours in its basin
+            median = None
+            if self.median > 1 and end - t > 2:
+                median = _running_median(flat[t:end], self.median, self.skeleton.dof_revolute.to(x.device))
+                median = torch.where(self.lr > 0, median, flat[t:end])  # a held DOF stays where it is
+            start, done = t, t  # a finite piece [t, end): windows over it; frames before `done` smoothed
             while True:
                 stop = min(end, start + self.window)
                 held = 2 if start > t else 0
@@ -219,10 +251,16 @@ class TrajectorySmoother(nn.Module):
                 if free.stop - free.start > 0:
                     obs = _stack([observations[k] for k in range(free.start, free.stop)], flat.shape[1])
                     if obs is not None:  # a window without observations keeps the track
-                        x_w, e0, e1 = self._window(out[free], obs, anchors)
+                        begin = None
+                        if median is not None:  # the window's smoothed frames start where they are
+                            begin = torch.cat(
+                                [out[free.start : done], median[max(done, free.start) - t : stop - t]]
+                            )
+                        x_w, e0, e1 = self._window(out[free], obs, anchors, begin)
                         out[free] = x_w
                         before, after = before + e0, after + e1
                         windows += 1
+                done = stop
                 if stop == end:
                     break
                 start = stop - self.overlap
@@ -233,6 +271,18 @@ class TrajectorySmoother(nn.Module):
             loss=after.reshape(lead),
             windows=windows,
         )
+
+
+def _running_median(x: Tensor, k: int, revolute: Tensor) -> Tensor:
+    """The running median of ``x (T, B, D)`` over ``k`` frames (odd) per DOF, the window cut short at the
+    ends (the lower median of an even count); revolute DOFs taken along their unwrapped path and returned
+    on each frame's own branch."""
+    steps = _wrapped_steps(x, revolute)
+    path = torch.cat([x[:1], x[:1] + steps.cumsum(0)])  # revolute DOFs without their 2 pi jumps
+    pad = path.new_full((k // 2, *path.shape[1:]), math.nan)
+    med = torch.cat([pad, path, pad]).unfold(0, k, 1).nanmedian(-1).values  # (T, B, D)
+    d = med - path
+    return x + torch.where(revolute, torch.atan2(torch.sin(d), torch.cos(d)), d)
 
 
 def _stack(observations: list, batch: int) -> Silhouettes | Tensor | None:

@@ -284,10 +284,14 @@ class Tracker(nn.Module):
             own. ``None`` (default): where the likelihood reads silhouettes through cameras (the cue needs
             them). On foreign renders of the 11 CMU clips (500 evaluations per frame) it took clean masks
             from 38 to 31 mm and noisy ones from 97 to 84 mm, for ~15 ms per frame on one CPU core
-            (BENCHMARKS.md, "Smoothing the track"). ``False`` for the filter alone (an online use).
+            (BENCHMARKS.md, "Smoothing the track"); started from the track's running median over 5
+            frames (not from the track itself), noisy ones 71.4 -> 69.1 mm over five draws
+            (BENCHMARKS.md, "The smoother's start").
+            ``False`` for the filter alone (an online use).
         smooth_options: keywords of :class:`~torchpf.smooth.TrajectorySmoother`; besides its own, ``scale``
             (default 16): its acceleration std ``sigma`` is ``scale`` times the motion prior's per-frame
-            step std (0.03 rad or m where the prior has none), unless ``sigma`` is given.
+            step std (0.03 rad or m where the prior has none), unless ``sigma`` is given. The body refit's
+            first pass (:meth:`_refit`) smooths with ``median=1`` unless a ``median`` is given here.
         device, dtype: where and in which precision to run (observations are moved per frame).
         progress: tqdm progress bar.
     """
@@ -907,9 +911,13 @@ class Tracker(nn.Module):
         from torchpf.detect import fit_body_to_frame
 
         first_frames = [frames[t] for t in range(k)]
-        before = self.with_skeleton(fitted).track(
-            first_frames, init=pose, seed=seed, fps=fps, calibrate=False
-        )
+        first_pass = self.with_skeleton(fitted)
+        # The body is fitted at this pass's smoothed poses as the smoother took them from its own filter's
+        # track: started from the track's running median (what the final track's smoothing does), the bodies
+        # tracked no better (noisy foreign renders, 71.8 against 71.4 mm; BENCHMARKS.md, "The smoother's
+        # start"). A `median` in smooth_options is used in both passes.
+        first_pass.smooth_options = {"median": 1, **first_pass.smooth_options}
+        before = first_pass.track(first_frames, init=pose, seed=seed, fps=fps, calibrate=False)
         # frames the fit can read: silhouettes in them and a finite tracked pose
         used = [
             t

@@ -14,6 +14,7 @@ import torch
 
 from torchpf.detect import PersonDetector, looks_uncalibrated, visual_hull
 from torchpf.observations import Frame
+from torchpf.smooth import TrajectorySmoother
 from torchpf.tracker import Tracker
 
 CMU = Path(__file__).resolve().parents[2].parent / "shared" / "mocap" / "cmu"
@@ -374,11 +375,20 @@ def test_track_fits_an_uncalibrated_body_at_the_initial_pose(case, device):
         fits[-1] += fit(skeleton, cameras, obs, pose, **options)
         return fits[-1][2:]
 
+    medians, made = [], TrajectorySmoother.__init__
+
+    def smoother(self, *args, **options):  # the running median each smoothing starts from
+        made(self, *args, **options)
+        medians.append(self.median)
+
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(Tracker, "initial_particles", seen)
         patch.setattr(detect, "fit_body_to_frame", fitting)
+        patch.setattr(TrajectorySmoother, "__init__", smoother)
         with pytest.warns(UserWarning, match="looks uncalibrated.*at the given pose"):
             fitted = tracker.track(frames, init=case.angles[0])
+    # the refit's pass smooths from its filter's track, the final track from the track's running median
+    assert medians == [1, 5]
     assert not looks_uncalibrated(fitted.skeleton)
     # first frame 0 at the given pose; then the 4 frames at the poses a track on that body found
     assert tracker.refit_frames >= 4 and len(fits) == 2

@@ -104,6 +104,94 @@ def test_a_track_on_another_device_is_a_clear_error(skel):
         smoother(z.to("meta"), list(z))
 
 
+class TruncatedQuadratic(nn.Module):
+    """``log p(z_t | x_t) = -sum_d min((x_d - z_d)^2 / R^2, C) / 2``: a cue with no gradient beyond
+    ``sqrt(C) R`` of the observation (as a truncated chamfer has none beyond its reach)."""
+
+    C = 16.0
+
+    def forward(self, x, obs):
+        return -0.5 * ((x - obs.unsqueeze(-2)).square() / R**2).clamp(max=self.C).sum(-1)
+
+
+def lower_median_reference(x: torch.Tensor, k: int, revolute: torch.Tensor) -> torch.Tensor:
+    """Per DOF, numpy's unwrapped path of a (T, D) track, the lower median of the frames within k // 2 of
+    each frame (fewer at the ends), wrapped back to within pi of the frame's own value."""
+    import numpy as np
+
+    a = x.numpy()
+    path = np.where(revolute.numpy(), np.unwrap(a, axis=0), a)
+    h, T = k // 2, len(a)
+    med = np.stack(
+        [
+            np.sort(path[max(0, t - h) : t + h + 1], axis=0)[(min(T, t + h + 1) - max(0, t - h) - 1) // 2]
+            for t in range(T)
+        ]
+    )
+    d = med - path
+    d = np.where(revolute.numpy(), np.angle(np.exp(1j * d)), d)
+    return torch.from_numpy(a + d)
+
+
+def test_running_median_against_numpy_across_the_angle_wrap():
+    """The start of the descent: the running median of each DOF along its unwrapped path (a revolute DOF
+    that crosses +-pi is not averaged across the jump), each frame kept on its own branch."""
+    from torchpf.smooth import _running_median
+
+    g = torch.Generator().manual_seed(3)
+    T = 23
+    t = torch.arange(T, dtype=torch.float64).unsqueeze(-1)
+    x = torch.cat([2.9 + 0.08 * t, 0.3 * torch.sin(0.5 * t), 0.02 * t], -1)  # crosses pi; swings; slides
+    x = x + 0.2 * torch.randn(T, 3, generator=g, dtype=torch.float64)
+    x[:, 0] = torch.atan2(torch.sin(x[:, 0]), torch.cos(x[:, 0]))  # stored wrapped, jumping by 2 pi
+    revolute = torch.tensor([True, True, False])
+    for k in (3, 5, 9):
+        got = _running_median(x.unsqueeze(1), k, revolute).squeeze(1)
+        assert torch.allclose(got, lower_median_reference(x, k, revolute), atol=1e-12)
+        assert float((got - x)[:, :2].abs().max()) <= math.pi + 1e-12  # each frame on its own branch
+
+
+def test_the_median_start_escapes_frames_the_cue_cannot_pull_back(skel):
+    """A few frames of the track thrown far off in one DOF (beyond the cue's reach, as a mask defect throws a
+    limb): from the track the descent cannot bring them back (no cue gradient there) and the prior bends the
+    frames around them out of the cue's reach too; from the track's running median it reaches the normal
+    equations' optimum, which the truncated cue shares within its reach."""
+    T, sigma = 30, 0.02
+    z = observations(skel, T, seed=4)
+    free = skel.lower < skel.upper
+    dof = int(torch.nonzero(free & skel.dof_revolute & (skel.upper - skel.lower > 4.0))[0])
+    x = z.clone()
+    x[[6, 13, 21], dof] += 1.5  # 7.5 reaches of the cue away
+    want = closed_form(z, torch.full((z.shape[1],), sigma, dtype=torch.float64))
+    out = {
+        k: TrajectorySmoother(skel, cue=TruncatedQuadratic(), sigma=sigma, steps=600, median=k)(x, list(z))
+        for k in (1, 5)
+    }
+    assert float((out[5].x - want)[:, free].abs().max()) < 1e-3
+    # from the track, the prior drags their neighbours out of the cue's reach (0.2 rad) with them: 0.69 here
+    assert float((out[1].x - want)[:, dof].abs().max()) > 0.4
+    assert float(out[5].loss) < float(out[1].loss)
+    assert float(out[5].loss_before) == float(out[1].loss_before)  # E before: the track's, both times
+
+
+def test_the_track_itself_is_kept_where_its_energy_is_lower_than_its_median(skel):
+    """The median is only a start: with no steps the result is whichever of the track and its median has
+    the lower energy (the optimum itself stays; a track with spikes gives way to its median)."""
+    T, sigma = 30, 0.02
+    z = observations(skel, T, seed=5)
+    want = closed_form(z, torch.full((z.shape[1],), sigma, dtype=torch.float64))
+    smoother = TrajectorySmoother(skel, cue=QuadraticWithGrad(), sigma=sigma, steps=0, median=5)
+    kept = smoother(want, list(z))
+    assert torch.equal(kept.x, skel.clamp(want)) and float(kept.loss) == float(kept.loss_before)
+    spiky = want.clone()
+    spiky[[4, 11, 18]] += 0.4
+    moved = smoother(spiky, list(z))
+    assert float(moved.loss) < float(moved.loss_before)
+    assert float((moved.x - want)[[4, 11, 18]].abs().max()) < float((spiky - want)[[4, 11, 18]].abs().max())
+    with pytest.raises(ValueError, match="median must be an odd number"):
+        TrajectorySmoother(skel, cue=QuadraticWithGrad(), sigma=sigma, median=4)
+
+
 def test_held_dofs_and_non_finite_frames(skel):
     """A DOF with sigma 0 stays where the track put it; a NaN frame stays NaN and splits the sequence."""
     T = 20
