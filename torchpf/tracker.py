@@ -914,8 +914,8 @@ class Tracker(nn.Module):
         first_pass = self.with_skeleton(fitted)
         # The body is fitted at this pass's smoothed poses as the smoother took them from its own filter's
         # track: started from the track's running median (what the final track's smoothing does), the bodies
-        # tracked no better (noisy foreign renders, 71.8 against 71.4 mm; BENCHMARKS.md, "The smoother's
-        # start"). A `median` in smooth_options is used in both passes.
+        # tracked no better (noisy foreign renders, two draws: 71.8 against 71.4 mm; BENCHMARKS.md,
+        # "The smoother's start"). A `median` in smooth_options is used in both passes.
         first_pass.smooth_options = {"median": 1, **first_pass.smooth_options}
         before = first_pass.track(first_frames, init=pose, seed=seed, fps=fps, calibrate=False)
         # frames the fit can read: silhouettes in them and a finite tracked pose
