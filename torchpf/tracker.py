@@ -936,7 +936,9 @@ class Tracker(nn.Module):
         if not gate:
             return refit, pose, {"frames": len(used), "refit": True}
         start = report.poses[0].to(torch.float64) if used[0] == 0 else pose
-        after = self.with_skeleton(refit).track(first_frames, init=start, seed=seed, fps=fps, calibrate=False)
+        second = self.with_skeleton(refit)
+        second.smooth = False  # only the filter's log evidence is compared: a smoothed track would be dropped
+        after = second.track(first_frames, init=start, seed=seed, fps=fps, calibrate=False)
         keep = after.log_evidence > before.log_evidence  # NaN (no evidence) keeps the first body
         info = {"frames": len(used), "log_evidence": (before.log_evidence, after.log_evidence), "refit": keep}
         return (refit, start, info) if keep else (fitted, pose, info)
