@@ -44,6 +44,7 @@ import torch
 from torch import nn
 
 from torchpf.distributions import flatten_batch, unflatten_batch
+from torchpf.kinematics import _fk_cpu
 from torchpf.kinematics.tree import KinematicTree, partition_labels
 from torchpf.kinematics.urdf import (
     Frame,
@@ -269,6 +270,7 @@ class Skeleton(nn.Module):
             groups.setdefault(tuple(t for t, _, _ in runs[r]), []).append(r)
         self._groups: list[tuple[str, ...]] = []
         self._axis_pivots: list[bool] = []
+        self._members: list[list[int]] = []  # each group's nodes
         # float64 coefficients per group, (W (n, 12, P), WA (n, 12 + 3m or 12 + 6m, P) or None): cast to the
         # compute dtype in the tree's cache (plain attributes: module.to(dtype) must not round them)
         self._coefficients: list[tuple[torch.Tensor, torch.Tensor | None]] = []
@@ -302,6 +304,7 @@ class Skeleton(nn.Module):
                 self._axis_pivots.append(False)
             self._coefficients.append((W, WA))
             self._groups.append(sig)
+            self._members.append(members)
             concat.extend(members)
         self.register_buffer(
             "_fk_axis_rows",
@@ -400,6 +403,40 @@ class Skeleton(nn.Module):
         c["col3"] = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=dtype, device=device).reshape(1, 1, 4, 1)
         return c
 
+    def _fused_structure(self, dtype: torch.dtype):
+        """The fused CPU kernel's arrays (:mod:`torchpf.kinematics._fk_cpu`) in ``dtype``, built once."""
+
+        def build():
+            M = self.tree.n_nodes
+            kmax = max(1, max(len(sig) for sig in self._groups))
+            P = max(W.shape[2] for W, _ in self._coefficients)
+            coef = torch.zeros(M, 12 + 6 * kmax, P, dtype=torch.float64)
+            dofs = torch.full((M, kmax), -1, dtype=torch.long)
+            kinds = torch.zeros(M, kmax, dtype=torch.long)
+            pivots = torch.zeros(M, dtype=torch.bool)
+            for g, ((W, WA), sig, members) in enumerate(
+                zip(self._coefficients, self._groups, self._members, strict=True)
+            ):
+                rows = W if WA is None else WA
+                coef[members, : rows.shape[1], : rows.shape[2]] = rows
+                if sig:
+                    dofs[members, : len(sig)] = getattr(self, f"_fk_dofs{g}").cpu()
+                    kinds[members, : len(sig)] = torch.tensor([int(k == _PRISMATIC) for k in sig])
+                pivots[members] = self._axis_pivots[g]
+            coef = coef.to(dtype)  # the coefficients' rounding of the tensor version (cast once, as it does)
+            parent = self.tree.node_parent.cpu()
+            return _fk_cpu.Structure(
+                parent.numpy(),
+                dofs.numpy(),
+                kinds.numpy(),
+                coef.numpy(),
+                pivots.numpy(),
+                len(self.dof_names),
+                dtype,
+            )
+
+        return self.tree.cached(("fk_fused", dtype), build)
+
     def _world(self, theta: torch.Tensor, axes: bool = False):
         """World 3x4 transforms (M, 3, 4, B) of every internal node, level order; ``theta`` is (B, D).
 
@@ -409,6 +446,8 @@ class Skeleton(nn.Module):
         (and the pivots that are not a node's origin) in the run's parent frame (rows ``WA``), one rotation
         takes them to the world.
         """
+        if _fk_cpu.applies(theta):  # no autograd on a CPU: one fused kernel instead of ~130 operations
+            return _fk_cpu.world(self._fused_structure(theta.dtype), theta, axes)
         c = self._constants(theta.dtype, theta.device)
         q = theta.t().contiguous()  # (D, B): batch last, see above
         one = torch.ones_like(q)

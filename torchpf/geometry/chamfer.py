@@ -31,6 +31,7 @@ Example::
 from __future__ import annotations
 
 import math
+import os
 
 import torch
 import torch.nn.functional as F
@@ -48,7 +49,8 @@ from torchpf.geometry.projected import (
 __all__ = ["capsule_chamfer", "distance_lookup", "sample_image"]
 
 #: On a CPU, both terms and their gradients by one fused numba kernel (:mod:`torchpf.geometry._chamfer_cpu`)
-#: instead of ~200 tensor operations; False keeps the tensor version everywhere (the tests compare the two).
+#: instead of ~200 tensor operations; False (or ``TORCHPF_FUSED=0`` in the environment, the switch of every
+#: fused CPU kernel) keeps the tensor version everywhere (the tests compare the two).
 FUSED_CPU = True
 _FUSED_DTYPES = (torch.float32, torch.float64)
 
@@ -153,7 +155,13 @@ def _chamfer(
 
     Coordinates are kept as separate x and y tensors: on a CPU an element-wise pass over a trailing dim of
     size 2 (a broadcast, a sum, a stack) costs several plain passes of the same size."""
-    if FUSED_CPU and _chamfer_cpu.AVAILABLE and pa.device.type == "cpu" and pa.dtype in _FUSED_DTYPES:
+    if (
+        FUSED_CPU
+        and _chamfer_cpu.AVAILABLE
+        and pa.device.type == "cpu"
+        and pa.dtype in _FUSED_DTYPES
+        and os.environ.get("TORCHPF_FUSED", "1") != "0"
+    ):
         pattern = _fixed_unit_samples(n_body, n_cap, pa.dtype, pa.device)
         return _chamfer_cpu.chamfer(pa, pb, ra, rb, valid, image, fg, pattern, tau, linear, grad)
     # inference mode: no graph and no version counters, a tenth less per-operation overhead than no_grad

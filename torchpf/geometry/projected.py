@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import torch
 
 from torchpf.camera import CameraRig, _camera_to_pixels
+from torchpf.geometry import _project_cpu
 from torchpf.geometry.capsules import _chunk_rows, chunk_elements
 
 #: pose-capsule-point triples per chunk of :func:`capsule_coverage` (its passes then stay in cache)
@@ -110,12 +111,20 @@ class _RigProjection(torch.autograd.Function):
     projection's derivatives (perspective division and the radius ``f r |x_c|^(1/2) z^(-3/2)``), the
     backward maps the capsules' gradient to the ends (and radii) with them, instead of back-propagating
     through some forty small operations (a refinement step's cost, :mod:`torchpf.refine`). Same values as
-    the general path. Everything runs in the output's layout ``(B, V, 2 C)`` (pose, camera, capsule end)."""
+    the general path. Everything runs in the output's layout ``(B, V, 2 C)`` (pose, camera, capsule end).
+    On a CPU both directions are fused numba kernels (:mod:`torchpf.geometry._project_cpu`)."""
 
     @staticmethod
     def forward(ctx, a, b, radius, K, R, t, near: float):
         # a, b (..., C, 3), radius (C,), K, R (V, 3, 3), t (V, 3); runs without a graph (autograd.Function)
         batch, C, V = a.shape[:-2], a.shape[-2], R.shape[0]
+        ctx.fused = _project_cpu.applies(a) and b.dtype == a.dtype
+        if ctx.fused:  # one pass per direction (the backward recomputes what it needs from the inputs)
+            out = _project_cpu.forward(a, b, radius, K, R, t, near)
+            ctx.save_for_backward(a, b, radius, K, R, t)
+            ctx.near = near
+            ctx.mark_non_differentiable(out[4])
+            return out
         ends = torch.stack([a, b], -2).reshape(-1, 1, 2 * C, 3)
         xc = torch.matmul(ends, R.transpose(-1, -2)) + t.view(V, 1, 3)  # (B, V, 2 C, 3)
         x, y, z = xc.unbind(-1)
@@ -146,6 +155,9 @@ class _RigProjection(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, g_pa, g_pb, g_ra, g_rb, _):
+        if ctx.fused:
+            g_a, g_b, g_radius = _project_cpu.backward(*ctx.saved_tensors, ctx.near, g_pa, g_pb, g_ra, g_rb)
+            return g_a, g_b, g_radius if ctx.needs_input_grad[2] else None, None, None, None, None
         R, k00, k01, k11, iz, du, dv, xc, nn2, rad, q, zc, front = ctx.saved_tensors
         batch, C, V = ctx.shape
         x, y, z = xc.unbind(-1)

@@ -42,7 +42,20 @@ def _rig_and_capsules():
     return rig, a, b, torch.full((4,), 0.05, dtype=torch.float64)
 
 
-def test_project_capsules_into_a_rig():
+@pytest.fixture(params=["tensor", "fused"])
+def fused(request, monkeypatch):
+    """The rig projection's two CPU versions: the tensor operations and the numba kernels
+    (:mod:`torchpf.geometry._project_cpu`)."""
+    from torchpf.geometry import _project_cpu
+
+    if request.param == "fused" and not _project_cpu.AVAILABLE:
+        pytest.skip("numba is not installed")
+    monkeypatch.setenv("TORCHPF_FUSED", "1" if request.param == "fused" else "0")
+    assert _project_cpu.applies(torch.zeros(1)) == (request.param == "fused")
+    return request.param
+
+
+def test_project_capsules_into_a_rig(fused):
     rig, a, b, r = _rig_and_capsules()
     caps = project_capsules(rig, a, b, r)
     assert caps.pa.shape == (5, 3, 4, 2) and caps.ra.shape == (5, 3, 4)
@@ -53,10 +66,10 @@ def test_project_capsules_into_a_rig():
         assert torch.equal(one.valid, ref.valid), v
 
 
-def test_rig_projection_gradient_matches_autograd_per_camera():
-    """The rig's projection (one autograd node with the Jacobian written out) has the gradient in the ends
-    and radii that autograd gives through the per-camera projection, with an end behind a camera and
-    extra batch dims."""
+def test_rig_projection_gradient_matches_autograd_per_camera(fused):
+    """The rig's projection (one autograd node with the Jacobian written out, or the fused CPU kernels) has
+    the gradient in the ends and radii that autograd gives through the per-camera projection, with an end
+    behind a camera and extra batch dims."""
     rig, a, b, r = _rig_and_capsules()
     a, b = a.reshape(5, 1, 4, 3).expand(5, 2, 4, 3).clone(), b.reshape(5, 1, 4, 3).expand(5, 2, 4, 3).clone()
     a[1, 1, 2] = -rig.R[0].T @ rig.t[0] - 0.5 * rig.R[0, 2]  # behind camera 0

@@ -206,17 +206,45 @@ def test_dof_joints_name_the_moved_joint():
 
 @pytest.mark.parametrize("n", [1, 5, 300])
 def test_fk_paths_agree_with_pytorch_kinematics(skel, n, random_poses, monkeypatch):
-    """Both ways of composing the tree (pointer jumping for few poses, one depth level at a time for many)
-    give pytorch-kinematics' transforms and the same DOF axes, whichever the batch size."""
+    """The three ways of composing the tree (the tensor version's pointer jumping for few poses and one
+    depth level at a time for many, and the fused CPU kernel without autograd) give pytorch-kinematics'
+    transforms and the same DOF axes and pivots, whichever the batch size."""
     import torchpf.skeleton as module
+    from torchpf.kinematics import _fk_cpu
 
     theta = random_poses(skel, (n,), torch.float64, seed=3)
     ref = pk_reference(skel, theta)
     out = {}
-    for rows in (0, 10**9):  # the levels for every batch, then pointer jumping for every batch
+    paths = [("0", 0), ("0", 10**9)] + ([("1", 0)] if _fk_cpu.AVAILABLE else [])
+    for fused, rows in paths:  # the levels, pointer jumping, the kernel
+        monkeypatch.setenv("TORCHPF_FUSED", fused)
         monkeypatch.setattr(module, "_JUMP_MAX_ROWS", rows)
+        assert _fk_cpu.applies(theta) == (fused == "1")
         assert (skel.transforms(theta) - ref).abs().max().item() < 1e-10
-        out[rows] = skel.fk_with_axes(theta)
-        torch.testing.assert_close(out[rows][2].permute(2, 0, 1), ref[..., :3, 3], rtol=0, atol=1e-10)
-    for a, b in zip(out[0], out[10**9], strict=True):
-        torch.testing.assert_close(a, b, rtol=0, atol=1e-12)
+        out[fused, rows] = skel.fk_with_axes(theta)
+        torch.testing.assert_close(out[fused, rows][2].permute(2, 0, 1), ref[..., :3, 3], rtol=0, atol=1e-10)
+    for other in paths[1:]:
+        for a, b in zip(out[paths[0]], out[other], strict=True):
+            torch.testing.assert_close(a, b, rtol=0, atol=1e-12)
+
+
+def test_the_fused_kernel_in_float32_and_not_under_autograd(skel, random_poses, monkeypatch):
+    """The fused kernel's float32 results are the tensor version's to float32 rounding, and a pose that
+    autograd tracks goes through the tensor version (its gradient is finite differences', test above)."""
+    from torchpf.kinematics import _fk_cpu
+
+    if not _fk_cpu.AVAILABLE:
+        pytest.skip("numba is not installed")
+    theta = random_poses(skel, (7,), torch.float32, seed=4)
+    monkeypatch.setenv("TORCHPF_FUSED", "0")
+    ref = skel.fk_with_axes(theta)
+    monkeypatch.setenv("TORCHPF_FUSED", "1")
+    assert _fk_cpu.applies(theta)
+    for a, b in zip(ref, skel.fk_with_axes(theta), strict=True):
+        assert a.dtype == b.dtype == torch.float32
+        torch.testing.assert_close(a, b, rtol=0, atol=5e-6)
+    tracked = theta.clone().requires_grad_(True)
+    assert not _fk_cpu.applies(tracked)
+    assert skel.fk(tracked).requires_grad
+    with torch.no_grad():
+        assert _fk_cpu.applies(tracked)
