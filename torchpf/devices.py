@@ -3,15 +3,18 @@
 and leaves the caller's modules where they are.
 
 * :func:`on_cpu` -- a module itself when it is on the CPU, else a CPU copy of it.
+* :func:`fused_cpu` -- whether a fused CPU kernel (numba) may stand in for a computation's tensor operations.
 """
 
 from __future__ import annotations
 
 import copy
 import itertools
+import os
 from typing import TypeVar
 
-from torch import nn
+import torch
+from torch import Tensor, nn
 
 M = TypeVar("M", bound=nn.Module)
 
@@ -24,3 +27,26 @@ def on_cpu(module: M) -> M:
     if all(t.device.type == "cpu" for t in tensors):
         return module
     return copy.deepcopy(module).cpu()
+
+
+#: With more than one torch thread, batches of more poses than this stay on the tensor operations, which
+#: spread over the threads while a fused kernel runs on one: on a 16-core host, 4 or 16 threads, the tensor
+#: FK and projection were as fast as the kernels at 2,000 poses and faster at 10,000 (BENCHMARKS.md,
+#: "Round 8"); at 500 the kernels were 1.1-2x faster, with one thread 2-8x at every size.
+FUSED_MAX_POSES_THREADED = 1024
+
+
+def fused_cpu(t: Tensor, poses: int) -> bool:
+    """Whether a fused CPU kernel may replace the tensor operations on ``t`` holding ``poses`` poses: a plain
+    CPU float32/float64 tensor that autograd (or a ``torch.func`` transform: vmap, jacrev) does not track,
+    ``TORCHPF_FUSED`` not ``0`` in the environment (the switch of every fused kernel), and one torch thread
+    or at most :data:`FUSED_MAX_POSES_THREADED` poses. Whether numba is installed is the kernel's to add."""
+    if t.device.type != "cpu" or t.dtype not in (torch.float32, torch.float64):
+        return False
+    if t.requires_grad and torch.is_grad_enabled():
+        return False
+    if type(t) is not Tensor or torch._C._functorch.is_functorch_wrapped_tensor(t):
+        return False  # a subclass or a transform's wrapper: no storage of its own to hand to numba
+    if poses > FUSED_MAX_POSES_THREADED and torch.get_num_threads() > 1:
+        return False
+    return os.environ.get("TORCHPF_FUSED", "1") != "0"

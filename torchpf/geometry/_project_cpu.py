@@ -16,11 +16,12 @@ their own: ``_RigProjection`` calls them when :func:`applies`.
 from __future__ import annotations
 
 import math
-import os
 
 import numpy as np
 import torch
 from torch import Tensor
+
+from torchpf.devices import fused_cpu
 
 try:
     import numba
@@ -31,13 +32,10 @@ AVAILABLE = numba is not None
 
 
 def applies(a: Tensor) -> bool:
-    """Whether the projection of capsule ends ``a`` may run the fused kernels: a plain CPU float tensor,
-    numba installed, ``TORCHPF_FUSED`` not ``0`` in the environment (the switch of every fused kernel)."""
-    if not AVAILABLE or a.device.type != "cpu" or a.dtype not in (torch.float32, torch.float64):
-        return False
-    if type(a) is not Tensor or torch._C._functorch.is_functorch_wrapped_tensor(a):
-        return False
-    return os.environ.get("TORCHPF_FUSED", "1") != "0"
+    """Whether the projection of capsule ends ``a (..., C, 3)`` may run the fused kernels: numba installed
+    and :func:`torchpf.devices.fused_cpu` (no autograd through ``a`` needed of the tensor version, a CPU
+    float tensor, ``TORCHPF_FUSED`` not ``0``)."""
+    return AVAILABLE and fused_cpu(a, a[..., 0, 0].numel())
 
 
 def _end(K, R, t, X0, X1, X2, v, near):

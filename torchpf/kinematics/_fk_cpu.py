@@ -17,11 +17,12 @@ autograd: :meth:`torchpf.Skeleton._world` calls it when :func:`applies`.
 from __future__ import annotations
 
 import math
-import os
 
 import numpy as np
 import torch
 from torch import Tensor
+
+from torchpf.devices import fused_cpu
 
 try:
     import numba
@@ -32,16 +33,9 @@ AVAILABLE = numba is not None
 
 
 def applies(theta: Tensor) -> bool:
-    """Whether FK of ``theta`` may run the fused kernel: a plain CPU float tensor that autograd (or a
-    ``torch.func`` transform) does not track, numba installed, ``TORCHPF_FUSED`` not ``0`` in the
-    environment (the switch of every fused kernel)."""
-    if not AVAILABLE or theta.device.type != "cpu" or theta.dtype not in (torch.float32, torch.float64):
-        return False
-    if theta.requires_grad and torch.is_grad_enabled():
-        return False
-    if type(theta) is not Tensor or torch._C._functorch.is_functorch_wrapped_tensor(theta):
-        return False  # a subclass or a torch.func transform's tensor (vmap, jacrev): no storage to read
-    return os.environ.get("TORCHPF_FUSED", "1") != "0"
+    """Whether FK of poses ``theta (B, D)`` may run the fused kernel: numba installed and
+    :func:`torchpf.devices.fused_cpu` (no autograd, a CPU float tensor, ``TORCHPF_FUSED`` not ``0``)."""
+    return AVAILABLE and fused_cpu(theta, theta.shape[0])
 
 
 class Structure:

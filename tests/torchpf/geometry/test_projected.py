@@ -51,7 +51,7 @@ def fused(request, monkeypatch):
     if request.param == "fused" and not _project_cpu.AVAILABLE:
         pytest.skip("numba is not installed")
     monkeypatch.setenv("TORCHPF_FUSED", "1" if request.param == "fused" else "0")
-    assert _project_cpu.applies(torch.zeros(1)) == (request.param == "fused")
+    assert _project_cpu.applies(torch.zeros(1, 2, 3)) == (request.param == "fused")
     return request.param
 
 

@@ -248,3 +248,27 @@ def test_the_fused_kernel_in_float32_and_not_under_autograd(skel, random_poses, 
     assert skel.fk(tracked).requires_grad
     with torch.no_grad():
         assert _fk_cpu.applies(tracked)
+
+
+def test_fused_kernels_leave_large_threaded_batches_to_the_tensor_version(monkeypatch):
+    """With several torch threads a batch above ``FUSED_MAX_POSES_THREADED`` poses runs the tensor
+    operations (they spread over the threads, the kernels run on one); with one thread the kernels run at
+    every size; autograd, a non-CPU device or ``TORCHPF_FUSED=0`` always keep the tensor version."""
+    from torchpf import devices
+
+    monkeypatch.setattr(devices, "FUSED_MAX_POSES_THREADED", 4)
+    monkeypatch.delenv("TORCHPF_FUSED", raising=False)
+    t = torch.zeros(10, 3)
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        assert devices.fused_cpu(t, 4) and not devices.fused_cpu(t, 5)
+        torch.set_num_threads(1)
+        assert devices.fused_cpu(t, 10**6)
+    finally:
+        torch.set_num_threads(threads)
+    assert not devices.fused_cpu(t.requires_grad_(True), 1)
+    assert not devices.fused_cpu(torch.zeros(10, 3, dtype=torch.int64), 1)
+    assert not devices.fused_cpu(torch.zeros(10, 3, device="meta"), 1)
+    monkeypatch.setenv("TORCHPF_FUSED", "0")
+    assert not devices.fused_cpu(torch.zeros(10, 3), 1)
