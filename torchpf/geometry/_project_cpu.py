@@ -110,33 +110,36 @@ _forward_compiled = numba.njit(cache=True, nogil=True)(_forward) if AVAILABLE el
 _backward_compiled = numba.njit(cache=True, nogil=True)(_backward) if AVAILABLE else None
 
 
-def _np(x: Tensor, dtype) -> np.ndarray:
-    return np.ascontiguousarray(x.detach().numpy().astype(dtype, copy=False))
+def _inputs(a: Tensor, b: Tensor, radius: Tensor, K: Tensor, R: Tensor, t: Tensor, near: float):
+    """The kernels' leading arguments as contiguous arrays in ``a``'s dtype, and ``(batch, N, C, V, dtype)``
+    (``N`` poses: ``batch`` flattened)."""
+    batch, C, V = a.shape[:-2], a.shape[-2], R.shape[0]
+    N = math.prod(batch)
+    dt = np.float32 if a.dtype == torch.float32 else np.float64
+
+    def arr(x: Tensor) -> np.ndarray:
+        return np.ascontiguousarray(x.detach().numpy().astype(dt, copy=False))
+
+    args = (
+        arr(a.reshape(N, C, 3)),
+        arr(b.reshape(N, C, 3)),
+        arr(radius),
+        arr(K),
+        arr(R),
+        arr(t),
+        float(near),
+    )
+    return args, (batch, N, C, V, dt)
 
 
 def forward(a: Tensor, b: Tensor, radius: Tensor, K: Tensor, R: Tensor, t: Tensor, near: float):
     """``(pa, pb, ra, rb, valid)`` of ends ``a, b (..., C, 3)`` in a rig, shaped as ``_RigProjection``'s
     outputs ``(..., V, C, 2)`` and ``(..., V, C)``, in ``a``'s dtype."""
-    batch, C, V = a.shape[:-2], a.shape[-2], R.shape[0]
-    dt = np.float32 if a.dtype == torch.float32 else np.float64
-    N = int(np.prod(batch)) if len(batch) else 1
+    args, (batch, N, C, V, dt) = _inputs(a, b, radius, K, R, t, near)
     pa, pb = np.empty((N, V, C, 2), dt), np.empty((N, V, C, 2), dt)
     ra, rb = np.empty((N, V, C), dt), np.empty((N, V, C), dt)
     valid = np.empty((N, V, C), np.bool_)
-    _forward_compiled(
-        _np(a.reshape(N, C, 3), dt),
-        _np(b.reshape(N, C, 3), dt),
-        _np(radius, dt),
-        _np(K, dt),
-        _np(R, dt),
-        _np(t, dt),
-        float(near),
-        pa,
-        pb,
-        ra,
-        rb,
-        valid,
-    )
+    _forward_compiled(*args, pa, pb, ra, rb, valid)
     outs = (torch.from_numpy(pa), torch.from_numpy(pb), torch.from_numpy(ra), torch.from_numpy(rb))
     pa, pb, ra, rb = (o.reshape(*batch, *o.shape[1:]) for o in outs)
     return pa, pb, ra, rb, torch.from_numpy(valid).reshape(*batch, V, C)
@@ -145,30 +148,16 @@ def forward(a: Tensor, b: Tensor, radius: Tensor, K: Tensor, R: Tensor, t: Tenso
 def backward(a, b, radius, K, R, t, near: float, g_pa, g_pb, g_ra, g_rb):
     """The ends' gradients ``(g_a, g_b)`` ``(..., C, 3)`` and the radii's ``g_radius (C,)`` from the
     outputs' (any of them may be None: no gradient), in ``a``'s dtype."""
-    batch, C, V = a.shape[:-2], a.shape[-2], R.shape[0]
-    dt = np.float32 if a.dtype == torch.float32 else np.float64
-    N = int(np.prod(batch)) if len(batch) else 1
+    args, (batch, N, C, V, dt) = _inputs(a, b, radius, K, R, t, near)
 
     def grad(g, shape):
-        return np.zeros(shape, dt) if g is None else _np(g.reshape(shape), dt)
+        return (
+            np.zeros(shape, dt) if g is None else np.ascontiguousarray(g.detach().reshape(shape).numpy(), dt)
+        )
 
     g_a, g_b, g_radius = np.zeros((N, C, 3), dt), np.zeros((N, C, 3), dt), np.zeros(C, dt)
-    _backward_compiled(
-        _np(a.reshape(N, C, 3), dt),
-        _np(b.reshape(N, C, 3), dt),
-        _np(radius, dt),
-        _np(K, dt),
-        _np(R, dt),
-        _np(t, dt),
-        float(near),
-        grad(g_pa, (N, V, C, 2)),
-        grad(g_pb, (N, V, C, 2)),
-        grad(g_ra, (N, V, C)),
-        grad(g_rb, (N, V, C)),
-        g_a,
-        g_b,
-        g_radius,
-    )
+    grads = (grad(g_pa, (N, V, C, 2)), grad(g_pb, (N, V, C, 2)), grad(g_ra, (N, V, C)), grad(g_rb, (N, V, C)))
+    _backward_compiled(*args, *grads, g_a, g_b, g_radius)
     return (
         torch.from_numpy(g_a).reshape(*batch, C, 3),
         torch.from_numpy(g_b).reshape(*batch, C, 3),
