@@ -272,7 +272,6 @@ class Skeleton(nn.Module):
             groups.setdefault(tuple(t for t, _, _ in runs[r]), []).append(r)
         self._groups: list[tuple[str, ...]] = []
         self._axis_pivots: list[bool] = []
-        self._members: list[list[int]] = []  # each group's nodes
         # float64 coefficients per group, (W (n, 12, P), WA (n, 12 + 3m or 12 + 6m, P) or None): cast to the
         # compute dtype in the tree's cache (plain attributes: module.to(dtype) must not round them)
         self._coefficients: list[tuple[torch.Tensor, torch.Tensor | None]] = []
@@ -306,7 +305,6 @@ class Skeleton(nn.Module):
                 self._axis_pivots.append(False)
             self._coefficients.append((W, WA))
             self._groups.append(sig)
-            self._members.append(members)
             concat.extend(members)
         self.register_buffer(
             "_fk_axis_rows",
@@ -416,9 +414,12 @@ class Skeleton(nn.Module):
             dofs = torch.full((M, kmax), -1, dtype=torch.long)
             kinds = torch.zeros(M, kmax, dtype=torch.long)
             pivots = torch.zeros(M, dtype=torch.bool)
-            for g, ((W, WA), sig, members) in enumerate(
-                zip(self._coefficients, self._groups, self._members, strict=True)
-            ):
+            # the groups' nodes, concatenated in group order: the inverse of the level-order permutation
+            concat = torch.arange(M) if self._fk_reorder is None else torch.argsort(self._fk_reorder.cpu())
+            start = 0
+            for g, ((W, WA), sig) in enumerate(zip(self._coefficients, self._groups, strict=True)):
+                members = concat[start : start + W.shape[0]]
+                start += W.shape[0]
                 rows = W if WA is None else WA
                 coef[members, : rows.shape[1], : rows.shape[2]] = rows
                 if sig:

@@ -272,3 +272,13 @@ def test_fused_kernels_leave_large_threaded_batches_to_the_tensor_version(monkey
     assert not devices.fused_cpu(torch.zeros(10, 3, device="meta"), 1)
     monkeypatch.setenv("TORCHPF_FUSED", "0")
     assert not devices.fused_cpu(torch.zeros(10, 3), 1)
+
+
+def test_a_pickled_skeleton_runs_the_fused_kernel(skel, random_poses, tmp_path):
+    """A skeleton saved whole (``torch.save``, as a tracking result keeps it) and loaded again builds the
+    fused kernel's arrays from what it carries and gives the same FK."""
+    theta = random_poses(skel, (3,), torch.float64, seed=5)
+    torch.save(skel, tmp_path / "skel.pt")
+    loaded = torch.load(tmp_path / "skel.pt", weights_only=False)
+    for a, b in zip(skel.fk_with_axes(theta), loaded.fk_with_axes(theta), strict=True):
+        torch.testing.assert_close(a, b, rtol=0, atol=1e-12)
