@@ -34,7 +34,8 @@ AVAILABLE = numba is not None
 
 def applies(theta: Tensor) -> bool:
     """Whether FK of poses ``theta (B, D)`` may run the fused kernel: numba installed and
-    :func:`torchpf.devices.fused_cpu` (no autograd, a CPU float tensor, ``TORCHPF_FUSED`` not ``0``)."""
+    :func:`torchpf.devices.fused_cpu` (no autograd, a CPU float tensor, one thread or a small batch,
+    ``TORCHPF_FUSED`` not ``0``)."""
     return AVAILABLE and fused_cpu(theta, theta.shape[0])
 
 
@@ -110,9 +111,17 @@ def _kernel(q, parent, dofs, kinds, coef, pivots, orphans, with_axes, world, axe
                 loc[row, b] = 0.0
             for f in range(n):
                 c = coef[r, row, f]
-                if c != 0.0:
+                if c != 0.0:  # the coefficients are sparse: half the time of a dense product
                     for b in range(B):
                         loc[row, b] += c * mono[f, b]
+        # A non-finite angle makes the whole local transform NaN, as the tensor version's dense product does
+        # (0 x NaN is NaN there, and the zeros skipped above would leave some entries finite).
+        for k in range(m):
+            d = dofs[r, k]
+            for b in range(B):
+                if not math.isfinite(q[d, b]):
+                    for row in range(rows):
+                        loc[row, b] = math.nan
         p = parent[r]
         if p < 0:
             for i in range(3):

@@ -282,3 +282,22 @@ def test_a_pickled_skeleton_runs_the_fused_kernel(skel, random_poses, tmp_path):
     loaded = torch.load(tmp_path / "skel.pt", weights_only=False)
     for a, b in zip(skel.fk_with_axes(theta), loaded.fk_with_axes(theta), strict=True):
         torch.testing.assert_close(a, b, rtol=0, atol=1e-12)
+
+
+def test_the_fused_kernel_propagates_nan_as_the_tensor_version(skel, random_poses, monkeypatch):
+    """A NaN angle makes the same entries NaN in both versions (0 x NaN is NaN: the kernel skips no zero
+    coefficient), so a NaN pose is never half finite on one path only; the finite entries agree."""
+    from torchpf.kinematics import _fk_cpu
+
+    if not _fk_cpu.AVAILABLE:
+        pytest.skip("numba is not installed")
+    D = len(skel.dof_names)
+    theta = random_poses(skel, (D,), torch.float64, seed=6)
+    theta[torch.arange(D), torch.arange(D)] = float("nan")  # pose d has DOF d undefined
+    out = {}
+    for fused in ("0", "1"):
+        monkeypatch.setenv("TORCHPF_FUSED", fused)
+        out[fused] = skel.fk_with_axes(theta)
+    for a, b in zip(out["0"], out["1"], strict=True):
+        assert torch.equal(a.isnan(), b.isnan())
+        torch.testing.assert_close(a.nan_to_num(0.0), b.nan_to_num(0.0), rtol=0, atol=1e-12)
