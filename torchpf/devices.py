@@ -3,7 +3,8 @@
 and leaves the caller's modules where they are.
 
 * :func:`on_cpu` -- a module itself when it is on the CPU, else a CPU copy of it.
-* :func:`fused_cpu` -- whether a fused CPU kernel (numba) may stand in for a computation's tensor operations.
+* :func:`fused_cpu` -- whether a fused CPU kernel (numba) may stand in for a computation's tensor operations
+  (the one place that reads ``TORCHPF_FUSED``).
 """
 
 from __future__ import annotations
@@ -36,17 +37,19 @@ def on_cpu(module: M) -> M:
 FUSED_MAX_POSES_THREADED = 1024
 
 
-def fused_cpu(t: Tensor, poses: int) -> bool:
-    """Whether a fused CPU kernel may replace the tensor operations on ``t`` holding ``poses`` poses: a plain
-    CPU float32/float64 tensor that autograd (or a ``torch.func`` transform: vmap, jacrev) does not track,
-    ``TORCHPF_FUSED`` not ``0`` in the environment (the switch of every fused kernel), and one torch thread
-    or at most :data:`FUSED_MAX_POSES_THREADED` poses. Whether numba is installed is the kernel's to add."""
+def fused_cpu(t: Tensor, poses: int | None = None) -> bool:
+    """Whether a fused CPU kernel may replace the tensor operations on ``t``: a plain CPU float32/float64
+    tensor that autograd (or a ``torch.func`` transform: vmap, jacrev) does not track, ``TORCHPF_FUSED`` not
+    ``0`` in the environment (the one switch of every fused kernel: FK, projection, chamfer, articulated-body
+    solve), and, where ``poses`` is given (a kernel the threaded tensor version overtakes on large batches),
+    one torch thread or at most :data:`FUSED_MAX_POSES_THREADED` poses. Whether numba is installed is the
+    kernel's to add."""
     if t.device.type != "cpu" or t.dtype not in (torch.float32, torch.float64):
         return False
     if t.requires_grad and torch.is_grad_enabled():
         return False
     if type(t) is not Tensor or torch._C._functorch.is_functorch_wrapped_tensor(t):
         return False  # a subclass or a transform's wrapper: no storage of its own to hand to numba
-    if poses > FUSED_MAX_POSES_THREADED and torch.get_num_threads() > 1:
+    if poses is not None and poses > FUSED_MAX_POSES_THREADED and torch.get_num_threads() > 1:
         return False
     return os.environ.get("TORCHPF_FUSED", "1") != "0"

@@ -31,12 +31,12 @@ Example::
 from __future__ import annotations
 
 import math
-import os
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from torchpf.devices import fused_cpu
 from torchpf.geometry import _chamfer_cpu
 from torchpf.geometry.projected import (
     Capsules2D,
@@ -52,7 +52,6 @@ __all__ = ["capsule_chamfer", "distance_lookup", "sample_image"]
 #: instead of ~200 tensor operations; False (or ``TORCHPF_FUSED=0`` in the environment, the switch of every
 #: fused CPU kernel) keeps the tensor version everywhere (the tests compare the two).
 FUSED_CPU = True
-_FUSED_DTYPES = (torch.float32, torch.float64)
 
 
 def capsule_chamfer(
@@ -155,13 +154,7 @@ def _chamfer(
 
     Coordinates are kept as separate x and y tensors: on a CPU an element-wise pass over a trailing dim of
     size 2 (a broadcast, a sum, a stack) costs several plain passes of the same size."""
-    if (
-        FUSED_CPU
-        and _chamfer_cpu.AVAILABLE
-        and pa.device.type == "cpu"
-        and pa.dtype in _FUSED_DTYPES
-        and os.environ.get("TORCHPF_FUSED", "1") != "0"
-    ):
+    if FUSED_CPU and _chamfer_cpu.AVAILABLE and fused_cpu(pa):
         pattern = _fixed_unit_samples(n_body, n_cap, pa.dtype, pa.device)
         return _chamfer_cpu.chamfer(pa, pb, ra, rb, valid, image, fg, pattern, tau, linear, grad)
     # inference mode: no graph and no version counters, a tenth less per-operation overhead than no_grad

@@ -23,13 +23,13 @@ Example::
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 from torch import Tensor
 
+from torchpf.devices import fused_cpu
 from torchpf.kinematics.jacobian import dot, wrenches
 from torchpf.kinematics.tree import KinematicTree
 
@@ -316,18 +316,14 @@ def aba_solve(
 
 
 def fused_kernel_applies(*tensors: Tensor) -> bool:
-    """Whether :func:`aba_solve` may run the fused CPU kernel: CPU float tensors, no autograd through them,
-    numba installed (``TORCHPF_FUSED=0`` in the environment turns it off)."""
-    t0 = tensors[0]
-    if t0.device.type != "cpu" or t0.dtype not in (torch.float32, torch.float64):
-        return False
+    """Whether :func:`aba_solve` may run the fused CPU kernel: no autograd through any of ``tensors``,
+    numba installed and :func:`torchpf.devices.fused_cpu` of the first (a CPU float tensor,
+    ``TORCHPF_FUSED=0`` in the environment not set)."""
     if torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
-        return False
-    if os.environ.get("TORCHPF_FUSED", "1") == "0":
         return False
     from torchpf.kinematics import _aba_cpu
 
-    return _aba_cpu.AVAILABLE
+    return _aba_cpu.AVAILABLE and fused_cpu(tensors[0])
 
 
 def dense_solve(Jac: Tensor, w: Tensor, r: Tensor, tau: Tensor, arm: Tensor, free: Tensor) -> Tensor:
