@@ -7,6 +7,7 @@ giving the point cloud (subsampled to K points), particles spread around the tru
     python -m benchmarks.likelihoods --n 1000 --repeat 5 --threads 1 --clock cpu
 
 Goals on the 2-core CPU: point cloud >= 10,000 poses/s at K=1,000; three-camera silhouette >= 5,000 poses/s.
+Rows marked "tensor version" run a computation that has a fused CPU kernel without it (``TORCHPF_FUSED=0``).
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ import argparse
 import os
 import platform
 import time
+from unittest import mock
 
 import cv2
 import numpy as np
@@ -48,6 +50,10 @@ def machine() -> str:
         f"{cpu}; {os.cpu_count()} logical cores; torch {torch.__version__}, "
         f"{torch.get_num_threads()} threads; OpenCV {cv2.__version__}; Python {platform.python_version()}"
     )
+
+
+#: a row's environment for the tensor version of a computation that has a fused CPU kernel
+TENSOR = {"TORCHPF_FUSED": "0"}
 
 
 def setup(n_points: int):
@@ -89,6 +95,7 @@ def main(argv=None):
     )
     sil = SilhouetteLikelihood(skel, rig)
     dual = DualSilhouetteLikelihood(skel, rig)
+    dual512 = DualSilhouetteLikelihood(skel, rig, n_samples=512)
     cases = {
         "point cloud K=1000": (PointCloudLikelihood(skel), PointCloud(cloud[:1000])),
         "point cloud K=1000, compile=True": (
@@ -103,7 +110,11 @@ def main(argv=None):
         "silhouette (3 cams)": (sil, frame),
         "silhouette union-weighted (3 cams)": (SilhouetteLikelihood(skel, rig, union=True), frame),
         "dual silhouette N_s=128 (3 cams)": (dual, frame),
+        "dual N_s=128, tensor version": (dual, frame, TENSOR),
+        "dual silhouette N_s=512 (3 cams)": (dual512, frame),
+        "dual N_s=512, tensor version": (dual512, frame, TENSOR),
         "silhouette x dual (3 cams)": (ProductLikelihood([sil, dual]), frame),
+        "silhouette x dual N_s=512 (3 cams)": (ProductLikelihood([sil, dual512]), frame),
         "overlap ratio (3 cams)": (OverlapLikelihood(skel, rig), frame),
         "2D keypoints (3 cams)": (Keypoints2DLikelihood(skel, rig), frame),
         "skin blobs (3 cams)": (SkinBlobLikelihood(skel, rig), frame),
@@ -114,11 +125,11 @@ def main(argv=None):
     clock = time.perf_counter if args.clock == "wall" else time.process_time
     print(f"{header}   (poses/s, float32, {args.clock} clock, median of {args.repeat})")
     print("-" * len(header))
-    for name, (lik, obs) in cases.items():
+    for name, (lik, obs, *env) in cases.items():
         row = f"{name:38s}"
         for n in args.n:
             theta = (truth + 0.05 * torch.randn(n, len(truth), generator=g, dtype=torch.float64)).float()
-            with torch.no_grad():
+            with torch.no_grad(), mock.patch.dict(os.environ, env[0] if env else {}):
                 lik(theta, obs)  # warm-up (caches, allocator)
                 times = []
                 for _ in range(args.repeat):

@@ -13,7 +13,7 @@ Example::
 """
 
 from torchpf.geometry.capsules import capsule_distance, capsule_truncated_cost, raycast_capsules
-from torchpf.geometry.chamfer import capsule_chamfer, distance_lookup, sample_image
+from torchpf.geometry.chamfer import capsule_area_mean, capsule_chamfer, distance_lookup, sample_image
 from torchpf.geometry.projected import (
     Capsules2D,
     capsule_coverage,
@@ -27,6 +27,7 @@ from torchpf.geometry.projected import (
 
 __all__ = [
     "Capsules2D",
+    "capsule_area_mean",
     "capsule_chamfer",
     "capsule_coverage",
     "capsule_distance",

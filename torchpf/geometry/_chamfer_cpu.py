@@ -60,6 +60,26 @@ def _capsule(pa, pb, ra, rb, g, i, c):
     return ax, ay, ex, ey, max(math.hypot(ex, ey), 1e-9), ra[g, i, c], rb[g, i, c]
 
 
+def _area_point(k, u, h, cos_c, sin_c, L, r_a, r_b):
+    """Area point ``k`` of a capsule of axis length ``L`` and radii ``r_a``, ``r_b`` in the fixed pattern
+    (body ``u``, ``h`` (n_body,), caps ``cos_c``, ``sin_c`` (2, n_cap); the points of the tensor version's
+    ``_area_points``): its coordinates ``alpha`` along the axis (in axis lengths) and ``beta`` across it
+    (``p = pa + alpha e + beta n``, ``n = (-e_y, e_x)``), and the area ``w`` (px^2) it stands for."""
+    n_body, n_cap = u.shape[0], cos_c.shape[1]
+    inv = 1.0 / L
+    if k < n_body:
+        dr = r_b - r_a
+        qc = u[k] * (0.5 * (r_a + r_b))
+        t = 2 * qc / max(r_a + math.sqrt(max(r_a * r_a + 2.0 * dr * qc, 0.0)), 1e-12)
+        return t, h[k] * (r_a + t * dr) * inv, L * (r_a + r_b) / n_body
+    half_disc = 0.5 * math.pi / n_cap
+    if k < n_body + n_cap:  # the cap of pa, facing away from pb
+        j = k - n_body
+        return -cos_c[0, j] * r_a * inv, sin_c[0, j] * r_a * inv, r_a * r_a * half_disc
+    j = k - n_body - n_cap  # the cap of pb
+    return 1.0 + cos_c[1, j] * r_b * inv, sin_c[1, j] * r_b * inv, r_b * r_b * half_disc
+
+
 def _on_axis(dx, dy, ex, ey, inv_ee):
     """A point ``(dx, dy)`` from the axis' start, on the axis ``(ex, ey)`` (``inv_ee = 1 / |e|^2``, 0 for a
     point-like axis): its parameter ``s``, ``t`` = ``s`` clamped to [0, 1], and its offset ``(qx, qy)`` from
@@ -73,6 +93,7 @@ if AVAILABLE:
     _lookup = numba.njit(cache=True, inline="always")(_lookup)
     _capsule = numba.njit(cache=True, inline="always")(_capsule)
     _on_axis = numba.njit(cache=True, inline="always")(_on_axis)
+    _area_point = numba.njit(cache=True, inline="always")(_area_point)
 
 
 def _kernel(pa, pb, ra, rb, valid, image, fg, u, h, cos_c, sin_c, tau, linear, grad, model, cover, jm, jc):
@@ -80,8 +101,9 @@ def _kernel(pa, pb, ra, rb, valid, image, fg, u, h, cos_c, sin_c, tau, linear, g
     their gradients ``jm``, ``jc`` (G, N, C, 6) in ``(pa_x, pa_y, pb_x, pb_y, ra, rb)`` of each capsule
     (zero-filled by the caller: the cover term adds into ``jc``, and invalid capsules keep 0).
 
-    pa, pb (G, N, C, 2), ra, rb (G, N, C), valid (G, N, C) bool, image (G, H, W), fg (G, n, 2); the area
-    points' fixed pattern: body ``u``, ``h`` (n_body,), caps ``cos_c``, ``sin_c`` (2, n_cap)."""
+    pa, pb (G, N, C, 2), ra, rb (G, N, C), valid (G, N, C) bool, image (G, H, W), fg (G, n, 2) sorted by
+    ``y`` within each image; the area points' fixed pattern: body ``u``, ``h`` (n_body,), caps ``cos_c``,
+    ``sin_c`` (2, n_cap)."""
     G, N, C = valid.shape
     n = fg.shape[1]
     n_body, n_cap = u.shape[0], cos_c.shape[1]
@@ -97,6 +119,7 @@ def _kernel(pa, pb, ra, rb, valid, image, fg, u, h, cos_c, sin_c, tau, linear, g
     wt = np.empty((C, M), np.float64)
     best = np.empty(n, np.float64)
     near = np.empty(n, np.int64)
+    rows = np.ascontiguousarray(fg[:, :, 1])  # (G, n), ascending per image
     for g in range(G):
         for i in range(N):
             # ---- model term: sum_p w_p rho(d_mask(p)) / sum_p w_p over the capsules' area points
@@ -109,22 +132,7 @@ def _kernel(pa, pb, ra, rb, valid, image, fg, u, h, cos_c, sin_c, tau, linear, g
                 inv = 1.0 / L
                 dr = r_b - r_a
                 for k in range(M):
-                    if k < n_body:
-                        qc = u[k] * (0.5 * (r_a + r_b))
-                        t = 2 * qc / max(r_a + math.sqrt(max(r_a * r_a + 2.0 * dr * qc, 0.0)), 1e-12)
-                        alpha = t
-                        beta = h[k] * (r_a + t * dr) * inv
-                        w = L * (r_a + r_b) / n_body
-                    elif k < n_body + n_cap:  # the cap of pa, facing away from pb
-                        j = k - n_body
-                        alpha = -cos_c[0, j] * r_a * inv
-                        beta = sin_c[0, j] * r_a * inv
-                        w = r_a * r_a * half_disc
-                    else:  # the cap of pb
-                        j = k - n_body - n_cap
-                        alpha = 1.0 + cos_c[1, j] * r_b * inv
-                        beta = sin_c[1, j] * r_b * inv
-                        w = r_b * r_b * half_disc
+                    alpha, beta, w = _area_point(k, u, h, cos_c, sin_c, L, r_a, r_b)
                     px = ax + alpha * ex - beta * ey
                     py = ay + alpha * ey + beta * ex
                     v, gx, gy = _lookup(image, g, px, py)
@@ -193,8 +201,9 @@ def _kernel(pa, pb, ra, rb, valid, image, fg, u, h, cos_c, sin_c, tau, linear, g
                     jm[g, i, c, 4] = g_ra
                     jm[g, i, c, 5] = g_rb
             # ---- cover term: (1 / n) sum_j rho(d_model(q_j)) over the foreground samples
-            # the nearest capsule of every sample, capsule by capsule (the inner loop over the samples
-            # carries no dependency, so it vectorises)
+            # the nearest capsule of every sample, capsule by capsule; a sample farther than tau from a
+            # capsule costs rho(tau) whichever capsule is nearest, so each capsule visits only the samples
+            # in the rows of its bounding box widened by tau (the samples come sorted by row)
             for j in range(n):
                 best[j] = np.inf
                 near[j] = -1
@@ -205,7 +214,10 @@ def _kernel(pa, pb, ra, rb, valid, image, fg, u, h, cos_c, sin_c, tau, linear, g
                 ee = ex * ex + ey * ey
                 inv_ee = 1.0 / ee if ee > 1e-12 else 0.0
                 dr = r_b - r_a
-                for j in range(n):
+                reach = max(abs(r_a), abs(r_b)) + tau
+                first = np.searchsorted(rows[g], min(ay, ay + ey) - reach)
+                last = np.searchsorted(rows[g], max(ay, ay + ey) + reach, side="right")
+                for j in range(first, last):  # no other branch: the loop vectorises
                     _, t, qx, qy = _on_axis(fg[g, j, 0] - ax, fg[g, j, 1] - ay, ex, ey, inv_ee)
                     sd = math.sqrt(max(qx * qx + qy * qy, 1e-12)) - (r_a + t * dr)
                     if sd < best[j]:
@@ -247,6 +259,90 @@ def _kernel(pa, pb, ra, rb, valid, image, fg, u, h, cos_c, sin_c, tau, linear, g
 _compiled = numba.njit(cache=True, nogil=True)(_kernel) if AVAILABLE else None
 
 
+def _bilinear_zeros(image, g, px, py):
+    """Bilinear look-up of ``image[g]`` at pixel ``(px, py)`` (pixel centres at integers), 0 outside the
+    image (``grid_sample`` with zeros padding, ``align_corners=False``); NaN at a NaN point."""
+    if math.isnan(px) or math.isnan(py):
+        return math.nan
+    H, W = image.shape[1], image.shape[2]
+    x0, y0 = math.floor(px), math.floor(py)
+    fx, fy = px - x0, py - y0
+    c0, r0 = int(x0), int(y0)
+    value = 0.0
+    for dy in range(2):
+        r = r0 + dy
+        if r < 0 or r >= H:
+            continue
+        wy = fy if dy else 1.0 - fy
+        for dx in range(2):
+            c = c0 + dx
+            if 0 <= c < W:
+                value += wy * (fx if dx else 1.0 - fx) * image[g, r, c]
+    return value
+
+
+if AVAILABLE:
+    _bilinear_zeros = numba.njit(cache=True, inline="always")(_bilinear_zeros)
+
+
+def _area_mean_kernel(pa, pb, ra, rb, valid, image, u, h, cos_c, sin_c, out):
+    """``out[g, i]``: the area-weighted mean of ``image[g]`` (bilinear, 0 outside) over the area points of
+    pose ``i``'s valid capsules (the fixed pattern of :func:`_area_point`); 0 where no valid capsule has
+    area. Shapes as in :func:`_kernel`."""
+    G, N, C = valid.shape
+    M = u.shape[0] + 2 * cos_c.shape[1]
+    for g in range(G):
+        for i in range(N):
+            wsum = 0.0
+            fsum = 0.0
+            for c in range(C):
+                ax, ay, ex, ey, L, r_a, r_b = _capsule(pa, pb, ra, rb, g, i, c)
+                if math.isnan(ax + ay + ex + ey + r_a + r_b):
+                    fsum = math.nan  # a NaN pose is NaN (as the tensor version's 0 x NaN), valid or not
+                if not valid[g, i, c]:
+                    continue
+                for k in range(M):
+                    alpha, beta, w = _area_point(k, u, h, cos_c, sin_c, L, r_a, r_b)
+                    value = _bilinear_zeros(
+                        image, g, ax + alpha * ex - beta * ey, ay + alpha * ey + beta * ex
+                    )
+                    wsum += w
+                    fsum += w * value
+            out[g, i] = fsum / max(wsum, 1e-9)
+
+
+_area_mean_compiled = numba.njit(cache=True, nogil=True)(_area_mean_kernel) if AVAILABLE else None
+
+
+def area_mean(pa, pb, ra, rb, valid, image, pattern) -> Tensor:
+    """``(G, N)`` area-weighted mean of the images ``(G, H, W)`` (bilinear, 0 outside) over the fixed area
+    points of the capsules ``pa``, ``pb`` (G, N, C, 2), ``ra``, ``rb``, ``valid`` (G, N, C) by the kernel:
+    ``sum_i w_i I(p_i) / sum_i w_i`` of :func:`~torchpf.geometry.sample_in_capsules` and a bilinear
+    ``grid_sample``, in ``pa``'s dtype. ``pattern`` as in :func:`chamfer`."""
+    dtype = pa.dtype
+
+    def arr(t: Tensor) -> np.ndarray:
+        return np.ascontiguousarray(t.detach().to(dtype).numpy())
+
+    G, N, C = valid.shape
+    out = np.empty((G, N), np.float32 if dtype == torch.float32 else np.float64)
+    u, h, cos_c, sin_c = (arr(p) for p in pattern)
+    _area_mean_compiled(
+        arr(pa),
+        arr(pb),
+        arr(ra.reshape(G, N, C)),
+        arr(rb.reshape(G, N, C)),
+        np.ascontiguousarray(valid.detach().numpy()),
+        arr(image),
+        u,
+        h,
+        np.ascontiguousarray(cos_c.reshape(2, -1)),
+        np.ascontiguousarray(sin_c.reshape(2, -1)),
+        out,
+    )
+    return torch.from_numpy(out)
+
+
 def chamfer(pa, pb, ra, rb, valid, image, fg, pattern, tau: float, linear: float, grad: bool):
     """:func:`torchpf.geometry.chamfer._chamfer` on CPU tensors by the fused kernel: ``(model, cover,
     (jm, jc) or None)`` as tensors of ``pa``'s dtype. ``pattern``: the area points' fixed unit samples
@@ -270,7 +366,11 @@ def chamfer(pa, pb, ra, rb, valid, image, fg, pattern, tau: float, linear: float
         arr(rb.reshape(G, N, C)),
         np.ascontiguousarray(valid.detach().numpy()),
         arr(image),
-        arr(fg),
+        arr(
+            torch.gather(
+                fg, 1, torch.argsort(fg[..., 1], dim=-1, stable=True).unsqueeze(-1).expand(-1, -1, 2)
+            )
+        ),
         u,
         h,
         np.ascontiguousarray(cos_c.reshape(2, -1)),

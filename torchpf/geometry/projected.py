@@ -31,7 +31,8 @@ from dataclasses import dataclass
 import torch
 
 from torchpf.camera import CameraRig, _camera_to_pixels
-from torchpf.geometry import _project_cpu
+from torchpf.devices import fused_cpu
+from torchpf.geometry import _coverage_cpu, _project_cpu
 from torchpf.geometry.capsules import _chunk_rows, chunk_elements
 
 #: pose-capsule-point triples per chunk of :func:`capsule_coverage` (its passes then stay in cache)
@@ -622,6 +623,19 @@ def capsule_coverage(
     """
     if softness <= 0:  # a hard test has no gradient: no graph, and in-place passes (_coverage_chunk)
         with torch.no_grad():
+            batch = caps.pa.shape[:-2]
+            if (
+                reduce == "max"
+                and exclude_own is None
+                and _coverage_cpu.AVAILABLE
+                and fused_cpu(caps.pa, math.prod(batch))
+                and points.dtype == caps.pa.dtype
+            ):  # point by point, stopping at the first capsule that covers it
+                G, R, pts = _point_groups(points, batch)
+                C = caps.pa.shape[-2]
+                fields = (caps.pa, caps.pb, caps.ra, caps.rb, caps.valid)
+                fields = (f.reshape(G, R, C, *f.shape[len(batch) + 1 :]) for f in fields)
+                return _coverage_cpu.coverage(*fields, pts).reshape(*batch, points.shape[-2])
             return _coverage(points, caps, softness, reduce, exclude_own, chunk_size)
     return _coverage(points, caps, softness, reduce, exclude_own, chunk_size)
 
@@ -637,7 +651,9 @@ def _coverage(points, caps, softness, reduce, exclude_own, chunk_size) -> torch.
     valid = caps.valid.reshape(G, R, C, 1)
     # Same quadratic-form trick as in 3D: two GEMMs give |p - a|^2 and the segment parameter of p, in
     # coordinates centred on each group's capsules (conditioning, see capsule_distance).
-    center = pa.detach().mean((1, 2), keepdim=True) if pa.numel() else pa.new_zeros(G, 1, 1, 2)
+    # (a NaN pose must not shift the centre of the other poses of its group: it would cover nothing for them)
+    finite = torch.nan_to_num(pa.detach(), nan=0.0, posinf=0.0, neginf=0.0)
+    center = finite.mean((1, 2), keepdim=True) if pa.numel() else pa.new_zeros(G, 1, 1, 2)
     pc = pts - center[:, 0]
     PtT = torch.cat([pc, (pc * pc).sum(-1, keepdim=True), torch.ones_like(pc[..., :1])], -1).transpose(-1, -2)
     own = None

@@ -4,6 +4,7 @@ by autograd: area points (`sample_in_capsules`), a `grid_sample` look-up in the 
 other than the capsules'. Both implementations are checked: the tensor operations and, on a CPU, the fused
 numba kernel (`torchpf.geometry._chamfer_cpu`)."""
 
+import numpy as np
 import pytest
 import torch
 
@@ -11,6 +12,7 @@ from torchpf.camera import camera_ring
 from torchpf.geometry import (
     Capsules2D,
     _chamfer_cpu,
+    capsule_area_mean,
     capsule_chamfer,
     chamfer,
     distance_to_capsules,
@@ -168,3 +170,56 @@ def test_a_nan_pose_scores_nan_and_leaves_the_others_alone(scene, path):
     keep = [0, 1, 3, 4]
     torch.testing.assert_close(model[:, keep], ref[0][:, keep])
     torch.testing.assert_close(cover[:, keep], ref[1][:, keep])
+
+
+def _bilinear_zeros(image, u, v):
+    """Independent numpy bilinear look-up, pixel centres at integers, 0 outside the image."""
+    H, W = image.shape
+    x0, y0 = np.floor(u).astype(int), np.floor(v).astype(int)
+    out = np.zeros(u.shape)
+    for dy in (0, 1):
+        for dx in (0, 1):
+            x, y = x0 + dx, y0 + dy
+            w = (u - x0 if dx else 1 - (u - x0)) * (v - y0 if dy else 1 - (v - y0))
+            inside = (x >= 0) & (x < W) & (y >= 0) & (y < H)
+            out += np.where(inside, w * image[y.clip(0, H - 1), x.clip(0, W - 1)], 0.0)
+    return out
+
+
+def test_capsule_area_mean_is_the_area_weighted_mask_share(scene, path):
+    """`capsule_area_mean` (Fontmarty eq. 2's share of the model inside the mask) equals the area-weighted
+    mean of a numpy bilinear look-up at the area points of `sample_in_capsules`, for the mask and a
+    non-binary image, in float64 and float32, per-sequence images; a NaN pose is NaN, the others unchanged."""
+    caps = scene["caps"]
+    mask = (scene["outside"] == 0).double()
+    smooth = mask + 0.5 * torch.rand(
+        mask.shape, generator=torch.Generator().manual_seed(1), dtype=torch.float64
+    )
+    pts, w = sample_in_capsules(caps, 8, 2)  # (V, N, P, 2), (V, N, P)
+    for image in (mask, smooth):
+        got = capsule_area_mean(caps, image)
+        look = np.stack(
+            [
+                _bilinear_zeros(image[v].numpy(), pts[v, ..., 0].numpy(), pts[v, ..., 1].numpy())
+                for v in range(3)
+            ]
+        )
+        want = (w.numpy() * look).sum(-1) / w.sum(-1).numpy()
+        assert got.shape == want.shape == (3, 5)
+        np.testing.assert_allclose(got.numpy(), want, rtol=1e-10, atol=1e-12)
+        f32 = Capsules2D(*(f.float() for f in (caps.pa, caps.pb, caps.ra, caps.rb)), caps.valid)
+        low = capsule_area_mean(f32, image.float())
+        assert low.dtype == torch.float32
+        np.testing.assert_allclose(low.double().numpy(), want, rtol=1e-5, atol=1e-5)
+    share = capsule_area_mean(caps, mask)  # pose 3 lies half off the images: (nearly) nothing inside
+    assert float(share[:, 3].max()) < 0.05 and 0.4 < float(share.max()) <= 1.0
+    two = Capsules2D(*(torch.stack([f, f]) for f in (caps.pa, caps.pb, caps.ra, caps.rb, caps.valid)))
+    both = capsule_area_mean(two, torch.stack([mask, smooth]))
+    torch.testing.assert_close(both[0], capsule_area_mean(caps, mask))
+    torch.testing.assert_close(both[1], capsule_area_mean(caps, smooth))
+    fields = [f.clone() for f in (caps.pa, caps.pb, caps.ra, caps.rb)]
+    fields[0][:, 2] = float("nan")
+    with_nan = capsule_area_mean(Capsules2D(*fields, caps.valid), mask)
+    assert torch.isnan(with_nan[:, 2]).all()
+    keep = [0, 1, 3, 4]
+    torch.testing.assert_close(with_nan[:, keep], capsule_area_mean(caps, mask)[:, keep])

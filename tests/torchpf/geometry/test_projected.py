@@ -239,6 +239,66 @@ def test_capsule_coverage_matches_masks():
     assert float((soft - cov).abs().max()) <= 1.0 and bool(((soft > 0) & (soft < 1)).any())
 
 
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_hard_coverage_kernel_matches_tensor_version_and_formula(dtype, monkeypatch):
+    """The fused CPU kernel of the hard coverage (:mod:`torchpf.geometry._coverage_cpu`) gives the tensor
+    version's 0/1 values and the per-point formula's (:func:`round_cone_sdf` <= 0), for shared, per-camera
+    and per-pose points, with invalid, NaN, zero-length and zero-radius capsules; only points within
+    rounding of a boundary may differ."""
+    from torchpf.geometry import _coverage_cpu
+
+    if not _coverage_cpu.AVAILABLE:
+        pytest.skip("numba is not installed")
+    V, N, C = 2, 5, 6
+    base = _caps(11, n=V * N, C=C)
+    caps = Capsules2D(
+        *(f.reshape(V, N, *f.shape[1:]).clone() for f in (base.pa, base.pb, base.ra, base.rb, base.valid))
+    )
+    caps.valid[0, 1, 2] = False
+    caps.pa[1, 3, 4] = float("nan")
+    caps.pb[0, 2, 1] = caps.pa[0, 2, 1]  # a disc
+    caps.ra[1, 0, 0] = caps.rb[1, 0, 0] = 0.0  # covers only the points on its axis
+    caps = Capsules2D(
+        *(
+            f.to(dtype) if f.is_floating_point() else f
+            for f in (caps.pa, caps.pb, caps.ra, caps.rb, caps.valid)
+        )
+    )
+    g = torch.Generator().manual_seed(3)
+    layouts = {
+        "shared": torch.rand(300, 2, generator=g, dtype=torch.float64) * 90,
+        "per camera": torch.rand(V, 1, 300, 2, generator=g, dtype=torch.float64) * 90,
+        "per pose": torch.rand(V, N, 300, 2, generator=g, dtype=torch.float64) * 90,
+    }
+    layouts["shared"][7] = float("nan")  # a NaN point is covered by nothing
+    for name, pts in layouts.items():
+        pts = pts.to(dtype)
+        monkeypatch.setenv("TORCHPF_FUSED", "0")
+        tensor = capsule_coverage(pts, caps)
+        monkeypatch.setenv("TORCHPF_FUSED", "1")
+        fused = capsule_coverage(pts, caps)
+        assert fused.shape == tensor.shape == (V, N, 300) and fused.dtype == dtype, name
+        # the definition, per point and capsule in float64 (NaN and invalid capsules cover nothing)
+        P = pts.double().expand(V, N, 300, 2).numpy()
+        pa, pb, ra, rb = (f.double().numpy() for f in (caps.pa, caps.pb, caps.ra, caps.rb))
+        margin = np.full((V, N, 300), np.inf)
+        for v, n, c in np.ndindex(V, N, C):
+            if not bool(caps.valid[v, n, c]) or np.isnan(pa[v, n, c]).any():
+                continue
+            e = pb[v, n, c] - pa[v, n, c]
+            ee = e @ e
+            t = np.clip((P[v, n] - pa[v, n, c]) @ e / ee, 0, 1) if ee > 1e-12 else np.zeros(300)
+            d = np.linalg.norm(P[v, n] - pa[v, n, c] - t[:, None] * e, axis=-1)
+            margin[v, n] = np.minimum(margin[v, n], d - (ra[v, n, c] + t * (rb[v, n, c] - ra[v, n, c])))
+        sure = np.abs(margin) > (1e-9 if dtype == torch.float64 else 1e-3)
+        want = torch.from_numpy(margin <= 0).to(dtype)
+        assert torch.equal(fused[sure], want[sure]), name
+        assert torch.equal(tensor[sure], want[sure]), name
+        assert 0.1 < float(want.mean()) < 0.9, name  # both outcomes are tested
+        if name == "shared":
+            assert not fused[..., 7].any() and not tensor[..., 7].any()
+
+
 def test_capsule_coverage_exclude_own_and_gradient():
     caps = _caps(2, n=1, C=2)
     pts, _ = sample_in_capsules(caps, 8, 2)
