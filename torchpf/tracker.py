@@ -818,8 +818,9 @@ class Tracker(nn.Module):
 
     def _smoother(self):
         """The :class:`~torchpf.smooth.TrajectorySmoother` of ``track(smooth=...)``: the hybrid refiner's cue
-        (else the default distance cue), ``sigma`` from ``smooth_options`` or ``scale`` times the motion
-        prior's per-frame step std (the prior this tracker built for the sequence's rate)."""
+        (else the default distance cue; the default one with the smoother's :data:`~torchpf.smooth.SAMPLES`
+        foreground samples), ``sigma`` from ``smooth_options`` or ``scale`` times the motion prior's
+        per-frame step std (the prior this tracker built for the sequence's rate)."""
         from torchpf.smooth import TrajectorySmoother
 
         options = dict(self.smooth_options)
@@ -829,8 +830,14 @@ class Tracker(nn.Module):
             std = torch.as_tensor(0.03 if std is None else std, dtype=torch.float64)
             options["sigma"] = scale * std.to(self.skeleton.lower.device)
         refiner = getattr(self.filter, "refiner", None)
+        refine = dict(self.filter_options.get("refine_options") or {})
         if "cue" not in options and refiner is not None:
-            options["cue"] = refiner.cue
+            if refine.get("cue", "silhouette_distance") == "silhouette_distance":
+                # the refiner's cue by name, with the smoother's own number of foreground samples
+                options["cue"] = "silhouette_distance"
+                options.setdefault("cue_options", refine.get("cue_options"))
+            else:
+                options["cue"] = refiner.cue
         return TrajectorySmoother(self.skeleton, self.cameras, **options).to(self.device)
 
     def _reads_silhouettes(self) -> bool:

@@ -255,7 +255,9 @@ def test_init_from_truth_csv_or_error(case, tmp_path):
     csv = tmp_path / "pose.csv"
     write_mocap_csv(csv, case.skeleton.dof_names, case.angles[:1].numpy())
     result = tracker.track(case.frames[:2], init=csv, calibrate=False)  # the body as given: the CSV's pose
-    assert result.init == "pose" and torch.allclose(result.angles[0], case.angles[0], atol=0.3)
+    # the filter starts at the CSV's pose (the smoothing afterwards may turn a forearm's twist, which two
+    # frames of silhouettes do not fix)
+    assert result.init == "pose" and torch.allclose(result.filtered_angles[0], case.angles[0], atol=0.3)
 
 
 def test_recovery_takes_the_filters_score_of_its_estimate():

@@ -304,3 +304,24 @@ def test_smoothing_needs_silhouettes_or_a_cue(scene):
     skel, cams, _, _ = scene
     with pytest.raises(ValueError, match="smooth"):
         Tracker(skel, None, likelihood="pointcloud", smooth=True, progress=False)
+
+
+def test_the_smoother_reads_more_foreground_samples_than_the_refiner(scene):
+    """The default cue of the smoother takes ``SAMPLES`` foreground samples per camera (the refiner's
+    keeps its 128; the smoother sees one pose per frame, not hundreds); given ``n_samples`` win, and a
+    refiner's cue that is not the default one is used as it is."""
+    from torchpf.smooth import SAMPLES
+
+    skel, cams, _, _ = scene
+    assert SAMPLES > 128
+    assert TrajectorySmoother(skel, cams).cue.n_samples == SAMPLES
+    assert TrajectorySmoother(skel, cams, cue_options={"n_samples": 64}).cue.n_samples == 64
+    tracker = Tracker(skel, cams, n_particles=200, progress=False)
+    assert tracker.filter.refiner.cue.n_samples == 128
+    assert tracker._smoother().cue.n_samples == SAMPLES
+    tau = {"refine_options": {"cue_options": {"tau": 4.0}}}
+    smoother = Tracker(skel, cams, n_particles=200, progress=False, filter_options=tau)._smoother()
+    assert (smoother.cue.tau, smoother.cue.n_samples) == (4.0, SAMPLES)
+    overlap = {"refine_options": {"cue": "overlap"}}
+    custom = Tracker(skel, cams, n_particles=200, progress=False, filter_options=overlap)
+    assert custom._smoother().cue is custom.filter.refiner.cue
