@@ -286,7 +286,8 @@ class Tracker(nn.Module):
             from 38 to 31 mm and noisy ones from 97 to 84 mm, for ~15 ms per frame on one CPU core
             (BENCHMARKS.md, "Smoothing the track"); started from the track's running median over 5
             frames (not from the track itself), noisy ones 71.4 -> 69.1 mm over five draws
-            (BENCHMARKS.md, "The smoother's start").
+            (BENCHMARKS.md, "The smoother's start"); its cue reading 512 foreground samples per camera
+            (the refiner's 128), 1.2-1.6 mm closer still (BENCHMARKS.md, "Round 9").
             ``False`` for the filter alone (an online use).
         smooth_options: keywords of :class:`~torchpf.smooth.TrajectorySmoother`; besides its own, ``scale``
             (default 16): its acceleration std ``sigma`` is ``scale`` times the motion prior's per-frame

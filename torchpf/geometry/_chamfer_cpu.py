@@ -6,6 +6,10 @@ operations per call, and their dispatch, not the arithmetic, is the cost (about 
 This kernel computes the same values and closed-form gradients point by point in one pass per image and
 pose. Same inputs and results as the tensor version to rounding (checked by the tests); CPU only, no
 autograd (:func:`torchpf.geometry.chamfer.capsule_chamfer` wraps it in its autograd node).
+
+:func:`area_mean` is the model term's sibling for the silhouette cue (Fontmarty eq. 2): the same area
+points, an image looked up bilinearly with zeros outside, their area-weighted mean
+(:func:`torchpf.geometry.chamfer.capsule_area_mean`).
 """
 
 from __future__ import annotations
@@ -314,32 +318,29 @@ def _area_mean_kernel(pa, pb, ra, rb, valid, image, u, h, cos_c, sin_c, out):
 _area_mean_compiled = numba.njit(cache=True, nogil=True)(_area_mean_kernel) if AVAILABLE else None
 
 
+def _array(t: Tensor, dtype: torch.dtype) -> np.ndarray:
+    return np.ascontiguousarray(t.detach().to(dtype).numpy())
+
+
+def _arrays(pa, pb, ra, rb, valid, pattern) -> tuple[tuple[np.ndarray, ...], tuple[np.ndarray, ...]]:
+    """The kernels' capsule arrays ``(pa, pb, ra, rb, valid)`` (radii as (G, N, C)) and fixed pattern
+    ``(u, h, cos_c, sin_c)`` (caps' rows as (2, n_cap)), contiguous, in ``pa``'s dtype."""
+    G, N, C = valid.shape
+    capsules = tuple(_array(t, pa.dtype) for t in (pa, pb, ra.reshape(G, N, C), rb.reshape(G, N, C)))
+    u, h, cos_c, sin_c = (_array(p, pa.dtype) for p in pattern)
+    rows = (np.ascontiguousarray(cos_c.reshape(2, -1)), np.ascontiguousarray(sin_c.reshape(2, -1)))
+    return (*capsules, np.ascontiguousarray(valid.detach().numpy())), (u, h, *rows)
+
+
 def area_mean(pa, pb, ra, rb, valid, image, pattern) -> Tensor:
     """``(G, N)`` area-weighted mean of the images ``(G, H, W)`` (bilinear, 0 outside) over the fixed area
     points of the capsules ``pa``, ``pb`` (G, N, C, 2), ``ra``, ``rb``, ``valid`` (G, N, C) by the kernel:
     ``sum_i w_i I(p_i) / sum_i w_i`` of :func:`~torchpf.geometry.sample_in_capsules` and a bilinear
     ``grid_sample``, in ``pa``'s dtype. ``pattern`` as in :func:`chamfer`."""
-    dtype = pa.dtype
-
-    def arr(t: Tensor) -> np.ndarray:
-        return np.ascontiguousarray(t.detach().to(dtype).numpy())
-
-    G, N, C = valid.shape
-    out = np.empty((G, N), np.float32 if dtype == torch.float32 else np.float64)
-    u, h, cos_c, sin_c = (arr(p) for p in pattern)
-    _area_mean_compiled(
-        arr(pa),
-        arr(pb),
-        arr(ra.reshape(G, N, C)),
-        arr(rb.reshape(G, N, C)),
-        np.ascontiguousarray(valid.detach().numpy()),
-        arr(image),
-        u,
-        h,
-        np.ascontiguousarray(cos_c.reshape(2, -1)),
-        np.ascontiguousarray(sin_c.reshape(2, -1)),
-        out,
-    )
+    G, N = valid.shape[:2]
+    capsules, pattern = _arrays(pa, pb, ra, rb, valid, pattern)
+    out = np.empty((G, N), np.float32 if pa.dtype == torch.float32 else np.float64)
+    _area_mean_compiled(*capsules, _array(image, pa.dtype), *pattern, out)
     return torch.from_numpy(out)
 
 
@@ -347,34 +348,19 @@ def chamfer(pa, pb, ra, rb, valid, image, fg, pattern, tau: float, linear: float
     """:func:`torchpf.geometry.chamfer._chamfer` on CPU tensors by the fused kernel: ``(model, cover,
     (jm, jc) or None)`` as tensors of ``pa``'s dtype. ``pattern``: the area points' fixed unit samples
     ``(u, h, cos_c, sin_c)`` (:func:`torchpf.geometry.projected._fixed_unit_samples`)."""
-    dtype = pa.dtype
-
-    def arr(t: Tensor) -> np.ndarray:
-        return np.ascontiguousarray(t.detach().to(dtype).numpy())
-
     G, N, C = valid.shape
-    np_dtype = np.float32 if dtype == torch.float32 else np.float64
+    np_dtype = np.float32 if pa.dtype == torch.float32 else np.float64
     model = np.empty((G, N), np_dtype)
     cover = np.empty((G, N), np_dtype)
     shape = (G, N, C, 6) if grad else (1, 1, 1, 6)
     jm, jc = np.zeros(shape, np_dtype), np.zeros(shape, np_dtype)
-    u, h, cos_c, sin_c = (arr(p) for p in pattern)
+    capsules, pattern = _arrays(pa, pb, ra, rb, valid, pattern)
+    by_row = torch.argsort(fg[..., 1], dim=-1, stable=True).unsqueeze(-1).expand(-1, -1, 2)
     _compiled(
-        arr(pa),
-        arr(pb),
-        arr(ra.reshape(G, N, C)),
-        arr(rb.reshape(G, N, C)),
-        np.ascontiguousarray(valid.detach().numpy()),
-        arr(image),
-        arr(
-            torch.gather(
-                fg, 1, torch.argsort(fg[..., 1], dim=-1, stable=True).unsqueeze(-1).expand(-1, -1, 2)
-            )
-        ),
-        u,
-        h,
-        np.ascontiguousarray(cos_c.reshape(2, -1)),
-        np.ascontiguousarray(sin_c.reshape(2, -1)),
+        *capsules,
+        _array(image, pa.dtype),
+        _array(torch.gather(fg, 1, by_row), pa.dtype),
+        *pattern,
         float(tau),
         float(linear),
         bool(grad),

@@ -630,7 +630,7 @@ def capsule_coverage(
                 and _coverage_cpu.AVAILABLE
                 and fused_cpu(caps.pa, math.prod(batch))
                 and points.dtype == caps.pa.dtype
-            ):  # point by point, stopping at the first capsule that covers it
+            ):  # one kernel: each capsule tests the points in its rows that no capsule covers yet
                 G, R, pts = _point_groups(points, batch)
                 C = caps.pa.shape[-2]
                 fields = (caps.pa, caps.pb, caps.ra, caps.rb, caps.valid)
