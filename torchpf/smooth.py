@@ -40,7 +40,7 @@ Measured (BENCHMARKS.md, "Smoothing the track"; foreign renders of the 11 CMU cl
 defaults, 500 evaluations per frame, 2 runs): the smoothed tracks are 38 -> 31 mm from the truth on clean
 masks and 97 -> 84 mm on noisy ones (three draws of the defects: 89 / 103 / 100 -> 75 / 90 / 88), every
 clip gaining, for ~15 ms per frame on one CPU core (80 steps over a 64-frame window; with the 512
-foreground samples of :data:`SAMPLES`, 1.2-1.6 mm closer on noisy masks, ~9 ms more). The acceleration std
+foreground samples of :data:`SAMPLES`, 1.2-1.6 mm closer on noisy masks, ~8 ms more). The acceleration std
 ``sigma`` that ``Tracker`` gives it is 16 times the random walk's per-frame step std; 8 and 32 were 1-2 mm
 worse on one kind of mask or the other. Without the prior (the same descent, each frame on its own) the
 clean tracks gain as much but the noisy ones nothing (107 against 105 mm on 5 clips): on clean masks the
@@ -71,7 +71,7 @@ __all__ = ["SAMPLES", "SmoothResult", "TrajectorySmoother"]
 #: not the filter's hundreds), so it can afford 4x the refiner's 128. On eight sets of saved filter tracks
 #: (noisy foreign renders of 11 CMU clips, six draws of the defects) the smoothed tracks came out 1.2-1.6 mm
 #: closer to the truth, every set (e.g. 65.8 -> 64.6 and 64.9 -> 63.4 mm; 256 samples 64.9 / 63.5, 1,024 no
-#: better than 512), no clip worse by more than 0.3 mm, for ~9 ms per frame (BENCHMARKS.md, "Round 9").
+#: better than 512), no clip worse by more than 0.3 mm, for ~8 ms per frame (BENCHMARKS.md, "Round 9").
 SAMPLES = 512
 
 
