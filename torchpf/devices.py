@@ -14,6 +14,7 @@ import itertools
 import os
 from typing import TypeVar
 
+import numpy as np
 import torch
 from torch import Tensor, nn
 
@@ -35,6 +36,12 @@ def on_cpu(module: M) -> M:
 #: FK and projection were as fast as the kernels at 2,000 poses and faster at 10,000 (BENCHMARKS.md,
 #: "Round 8"); at 500 the kernels were 1.1-2x faster, with one thread 2-8x at every size.
 FUSED_MAX_POSES_THREADED = 1024
+
+
+def kernel_array(t: Tensor, dtype: torch.dtype | None = None) -> np.ndarray:
+    """A CPU tensor ``t`` as the C-contiguous numpy array a fused kernel takes, in ``dtype`` (default its
+    own); no copy where it already is one."""
+    return np.ascontiguousarray(t.detach().to(dtype or t.dtype).numpy())
 
 
 def fused_cpu(t: Tensor, poses: int | None = None) -> bool:

@@ -20,6 +20,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from torchpf.devices import kernel_array
+
 try:
     import numba
 except ImportError:  # pragma: no cover - numba is a dependency; a platform without it keeps the tensor path
@@ -318,18 +320,14 @@ def _area_mean_kernel(pa, pb, ra, rb, valid, image, u, h, cos_c, sin_c, out):
 _area_mean_compiled = numba.njit(cache=True, nogil=True)(_area_mean_kernel) if AVAILABLE else None
 
 
-def _array(t: Tensor, dtype: torch.dtype) -> np.ndarray:
-    return np.ascontiguousarray(t.detach().to(dtype).numpy())
-
-
 def _arrays(pa, pb, ra, rb, valid, pattern) -> tuple[tuple[np.ndarray, ...], tuple[np.ndarray, ...]]:
     """The kernels' capsule arrays ``(pa, pb, ra, rb, valid)`` (radii as (G, N, C)) and fixed pattern
     ``(u, h, cos_c, sin_c)`` (caps' rows as (2, n_cap)), contiguous, in ``pa``'s dtype."""
     G, N, C = valid.shape
-    capsules = tuple(_array(t, pa.dtype) for t in (pa, pb, ra.reshape(G, N, C), rb.reshape(G, N, C)))
-    u, h, cos_c, sin_c = (_array(p, pa.dtype) for p in pattern)
+    capsules = tuple(kernel_array(t, pa.dtype) for t in (pa, pb, ra.reshape(G, N, C), rb.reshape(G, N, C)))
+    u, h, cos_c, sin_c = (kernel_array(p, pa.dtype) for p in pattern)
     rows = (np.ascontiguousarray(cos_c.reshape(2, -1)), np.ascontiguousarray(sin_c.reshape(2, -1)))
-    return (*capsules, np.ascontiguousarray(valid.detach().numpy())), (u, h, *rows)
+    return (*capsules, kernel_array(valid)), (u, h, *rows)
 
 
 def area_mean(pa, pb, ra, rb, valid, image, pattern) -> Tensor:
@@ -340,7 +338,7 @@ def area_mean(pa, pb, ra, rb, valid, image, pattern) -> Tensor:
     G, N = valid.shape[:2]
     capsules, pattern = _arrays(pa, pb, ra, rb, valid, pattern)
     out = np.empty((G, N), np.float32 if pa.dtype == torch.float32 else np.float64)
-    _area_mean_compiled(*capsules, _array(image, pa.dtype), *pattern, out)
+    _area_mean_compiled(*capsules, kernel_array(image, pa.dtype), *pattern, out)
     return torch.from_numpy(out)
 
 
@@ -358,8 +356,8 @@ def chamfer(pa, pb, ra, rb, valid, image, fg, pattern, tau: float, linear: float
     by_row = torch.argsort(fg[..., 1], dim=-1, stable=True).unsqueeze(-1).expand(-1, -1, 2)
     _compiled(
         *capsules,
-        _array(image, pa.dtype),
-        _array(torch.gather(fg, 1, by_row), pa.dtype),
+        kernel_array(image, pa.dtype),
+        kernel_array(torch.gather(fg, 1, by_row), pa.dtype),
         *pattern,
         float(tau),
         float(linear),

@@ -16,6 +16,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from torchpf.devices import kernel_array
+
 try:
     import numba
 except ImportError:  # pragma: no cover - numba is a dependency; a platform without it keeps the tensor path
@@ -68,18 +70,12 @@ def coverage(pa: Tensor, pb: Tensor, ra: Tensor, rb: Tensor, valid: Tensor, pts:
     """Hard coverage ``(G, R, P)`` in ``pa``'s dtype by the kernel: capsules ``pa, pb`` (G, R, C, 2),
     ``ra, rb, valid`` (G, R, C), points ``pts`` (G, P, 2) shared by the R rows of their group (any order:
     sorted here, the result in the given order)."""
-    dtype = pa.dtype
-    np_dtype = np.float32 if dtype == torch.float32 else np.float64
-
-    def arr(t: Tensor) -> np.ndarray:
-        return np.ascontiguousarray(t.detach().to(dtype).numpy())
-
+    np_dtype = np.float32 if pa.dtype == torch.float32 else np.float64
     G, R, C = valid.shape
     order = torch.argsort(pts[..., 1], dim=-1, stable=True)  # (G, P) each group's points by row
     sorted_pts = torch.gather(pts, 1, order.unsqueeze(-1).expand(-1, -1, 2))
     out = np.empty((G, R, pts.shape[1]), np_dtype)
-    _compiled(
-        arr(pa), arr(pb), arr(ra), arr(rb), np.ascontiguousarray(valid.detach().numpy()), arr(sorted_pts), out
-    )
+    floats = (kernel_array(t, pa.dtype) for t in (pa, pb, ra, rb))
+    _compiled(*floats, kernel_array(valid), kernel_array(sorted_pts, pa.dtype), out)
     cov = torch.from_numpy(out)
     return torch.empty_like(cov).scatter_(2, order.unsqueeze(1).expand(-1, R, -1), cov)

@@ -21,7 +21,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from torchpf.devices import fused_cpu
+from torchpf.devices import fused_cpu, kernel_array
 
 try:
     import numba
@@ -118,7 +118,7 @@ def _inputs(a: Tensor, b: Tensor, radius: Tensor, K: Tensor, R: Tensor, t: Tenso
     dt = np.float32 if a.dtype == torch.float32 else np.float64
 
     def arr(x: Tensor) -> np.ndarray:
-        return np.ascontiguousarray(x.detach().numpy().astype(dt, copy=False))
+        return kernel_array(x, a.dtype)
 
     args = (
         arr(a.reshape(N, C, 3)),

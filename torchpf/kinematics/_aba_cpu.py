@@ -15,6 +15,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from torchpf.devices import kernel_array
+
 try:
     import numba
 except ImportError:  # pragma: no cover - numba is a dependency; a platform without it keeps the eager path
@@ -221,7 +223,7 @@ def aba_solve(
     out = torch.zeros(D, B, dtype=tw.dtype)
 
     def arr(t: Tensor) -> np.ndarray:
-        return t.detach().to(tw.dtype).contiguous().numpy()
+        return kernel_array(t, tw.dtype)
 
     _compiled(
         arr(tw),
