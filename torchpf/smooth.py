@@ -41,10 +41,12 @@ defaults, 500 evaluations per frame, 2 runs): the smoothed tracks are 38 -> 31 m
 masks and 97 -> 84 mm on noisy ones (three draws of the defects: 89 / 103 / 100 -> 75 / 90 / 88), every
 clip gaining, for ~15 ms per frame on one CPU core (80 steps over a 64-frame window; with the 512
 foreground samples of :data:`SAMPLES`, 1.2-1.6 mm closer on noisy masks, ~8 ms more). The acceleration std
-``sigma`` that ``Tracker`` gives it is 16 times the random walk's per-frame step std; 8 and 32 were 1-2 mm
-worse on one kind of mask or the other. Without the prior (the same descent, each frame on its own) the
-clean tracks gain as much but the noisy ones nothing (107 against 105 mm on 5 clips): on clean masks the
-gain is the filter's estimates converged further, on noisy ones it is the neighbours holding a frame.
+``sigma`` that ``Tracker`` gave it was 16 times the random walk's per-frame step std (8 and 32 were 1-2 mm
+worse on one kind of mask or the other); with the :data:`AREA_POINTS` and 120 steps, 12 times: together
+1.1-2.2 mm closer again on each of ten sets of saved noisy filter tracks. Without the prior (the same
+descent, each frame on its own) the clean tracks gain as much but the noisy ones nothing (107 against 105
+mm on 5 clips): on clean masks the gain is the filter's estimates converged further, on noisy ones it is
+the neighbours holding a frame.
 
 Example::
 
@@ -65,7 +67,7 @@ from torch import Tensor, nn
 from torchpf.observations import Silhouettes
 from torchpf.refine import damped_adam_step, damping_factor, descent_setup
 
-__all__ = ["SAMPLES", "SmoothResult", "TrajectorySmoother"]
+__all__ = ["AREA_POINTS", "SAMPLES", "SmoothResult", "TrajectorySmoother"]
 
 #: Foreground samples per camera of the default cue. The smoother sees each frame once per step (one pose,
 #: not the filter's hundreds), so it can afford 4x the refiner's 128. On eight sets of saved filter tracks
@@ -73,6 +75,13 @@ __all__ = ["SAMPLES", "SmoothResult", "TrajectorySmoother"]
 #: closer to the truth, every set (e.g. 65.8 -> 64.6 and 64.9 -> 63.4 mm; 256 samples 64.9 / 63.5, 1,024 no
 #: better than 512), no clip worse by more than 0.3 mm, for ~8 ms per frame (BENCHMARKS.md, "Round 9").
 SAMPLES = 512
+
+#: Model area points per capsule body and per end cap of the default cue (the refiner's 8 and 2), for the
+#: same reason. Together with 120 descent steps (80 before) and ``Tracker``'s acceleration std at 12 step
+#: stds (16 before), the smoothed tracks came out 1.1-2.2 mm closer to the truth on every one of ten sets of
+#: saved filter tracks (noisy foreign renders, ten draws of the defects: mean 70.1 -> 68.3 mm), for ~11 ms per
+#: frame (BENCHMARKS.md, "Round 10").
+AREA_POINTS = (16, 4)
 
 
 @dataclass
@@ -104,8 +113,9 @@ class TrajectorySmoother(nn.Module):
         cue: a likelihood module ``(x (..., K, D), obs) -> (..., K)`` or a name of
             :data:`~torchpf.likelihoods.LIKELIHOODS` (default ``"silhouette_distance"``, the refiner's).
         cue_options: keywords of a named cue. The default cue takes :data:`SAMPLES` foreground samples
-            per camera unless ``n_samples`` is given (the refiner's 128 are few for a frame's mask: its
-            ~1,500 foreground pixels at 160x120).
+            per camera and :data:`AREA_POINTS` model points per capsule unless ``n_samples``, ``n_body``
+            or ``n_cap`` is given (the refiner's 128 samples are few for a frame's mask: its ~1,500
+            foreground pixels at 160x120).
         steps: descent steps per window.
         lr_rotation, lr_translation, damping: the refiner's Adam steps (radians, metres) and damping
             (:class:`~torchpf.refine.Refiner`).
@@ -123,7 +133,7 @@ class TrajectorySmoother(nn.Module):
         sigma: float | Tensor = 0.1,
         cue="silhouette_distance",
         cue_options=None,
-        steps: int = 80,
+        steps: int = 120,
         lr_rotation: float = 0.03,
         lr_translation: float = 0.01,
         damping: float = 0.1,
@@ -133,7 +143,8 @@ class TrajectorySmoother(nn.Module):
     ):
         super().__init__()
         if cue == "silhouette_distance":
-            cue_options = {"n_samples": SAMPLES, **dict(cue_options or {})}
+            n_body, n_cap = AREA_POINTS
+            cue_options = {"n_samples": SAMPLES, "n_body": n_body, "n_cap": n_cap, **dict(cue_options or {})}
         self.cue, lr = descent_setup(
             skeleton, cameras, cue, cue_options, steps, lr_rotation, lr_translation, damping
         )

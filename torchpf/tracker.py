@@ -287,10 +287,12 @@ class Tracker(nn.Module):
             (BENCHMARKS.md, "Smoothing the track"); started from the track's running median over 5
             frames (not from the track itself), noisy ones 71.4 -> 69.1 mm over five draws
             (BENCHMARKS.md, "The smoother's start"); its cue reading 512 foreground samples per camera
-            (the refiner's 128), 1.2-1.6 mm closer still (BENCHMARKS.md, "Round 9").
+            (the refiner's 128), 1.2-1.6 mm closer still (BENCHMARKS.md, "Round 9"); with twice the model
+            points per capsule, 120 steps and ``scale`` 12, 1.1-2.2 mm closer again (BENCHMARKS.md,
+            "Round 10").
             ``False`` for the filter alone (an online use).
         smooth_options: keywords of :class:`~torchpf.smooth.TrajectorySmoother`; besides its own, ``scale``
-            (default 16): its acceleration std ``sigma`` is ``scale`` times the motion prior's per-frame
+            (default 12): its acceleration std ``sigma`` is ``scale`` times the motion prior's per-frame
             step std (0.03 rad or m where the prior has none), unless ``sigma`` is given. The body refit's
             first pass (:meth:`_refit`) smooths with ``median=1`` unless a ``median`` is given here.
         device, dtype: where and in which precision to run (observations are moved per frame).
@@ -825,7 +827,7 @@ class Tracker(nn.Module):
         from torchpf.smooth import TrajectorySmoother
 
         options = dict(self.smooth_options)
-        scale = float(options.pop("scale", 16.0))
+        scale = float(options.pop("scale", 12.0))
         if "sigma" not in options:
             std = _diffusion_std(self.dynamics)
             std = torch.as_tensor(0.03 if std is None else std, dtype=torch.float64)

@@ -293,16 +293,16 @@ def test_recovery_after_a_full_occlusion():
 
 
 def test_recovery_reports_the_reacquired_pose_on_the_frame_it_happens():
-    """A run drifts 1.3 m while every camera is blind: the frame the masks return is re-acquired, and its
-    estimate is the re-acquired set's, not the hybrid filter's refined estimate of the lost particles (1.4 m
-    off before)."""
+    """A run drifts about 1 m while every camera is blind (1.0-1.3 m with the smoother's settings of
+    sessions 17-20): the frame the masks return is re-acquired, and its estimate is the re-acquired set's,
+    not the hybrid filter's refined estimate of the lost particles (1.4 m off before)."""
     from benchmarks.auto_init import make_case, run_recovery
 
     case = make_case("16_46", seed=1, frames=18, follow=True)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         err, root_err, result = run_recovery(case, 5, recovery=True)
-    assert float(root_err[14]) > 1.0 and bool(result.failed[15])
+    assert float(root_err[14]) > 0.8 and bool(result.failed[15])
     assert float(root_err[15]) < 0.1 and float(err[15]) < 0.3  # 31-83 mm and 0.16-0.26 m over 5 seeds
 
 

@@ -307,18 +307,30 @@ def test_smoothing_needs_silhouettes_or_a_cue(scene):
 
 
 def test_the_smoother_reads_more_foreground_samples_than_the_refiner(scene):
-    """The default cue of the smoother takes ``SAMPLES`` foreground samples per camera (the refiner's
-    keeps its 128; the smoother sees one pose per frame, not hundreds); given ``n_samples`` win, and a
-    refiner's cue that is not the default one is used as it is."""
-    from torchpf.smooth import SAMPLES
+    """The default cue of the smoother takes ``SAMPLES`` foreground samples per camera and
+    ``AREA_POINTS`` model points per capsule (the refiner's keeps its 128 and 8 / 2; the smoother sees one
+    pose per frame, not hundreds); given options win, and a refiner's cue that is not the default one is
+    used as it is."""
+    from torchpf.smooth import AREA_POINTS, SAMPLES
 
     skel, cams, _, _ = scene
-    assert SAMPLES > 128
-    assert TrajectorySmoother(skel, cams).cue.n_samples == SAMPLES
-    assert TrajectorySmoother(skel, cams, cue_options={"n_samples": 64}).cue.n_samples == 64
+    assert SAMPLES > 128 and AREA_POINTS > (8, 2)
+    default = TrajectorySmoother(skel, cams).cue
+    assert (default.n_samples, (default.n_body, default.n_cap)) == (SAMPLES, AREA_POINTS)
+    given = TrajectorySmoother(skel, cams, cue_options={"n_samples": 64, "n_cap": 1}).cue
+    assert (given.n_samples, given.n_body, given.n_cap) == (64, AREA_POINTS[0], 1)
     tracker = Tracker(skel, cams, n_particles=200, progress=False)
-    assert tracker.filter.refiner.cue.n_samples == 128
-    assert tracker._smoother().cue.n_samples == SAMPLES
+    refiner_cue = tracker.filter.refiner.cue
+    assert (refiner_cue.n_samples, refiner_cue.n_body, refiner_cue.n_cap) == (128, 8, 2)
+    smoother = tracker._smoother()
+    assert (smoother.cue.n_samples, (smoother.cue.n_body, smoother.cue.n_cap)) == (SAMPLES, AREA_POINTS)
+    # Tracker's acceleration std: 12 times the random walk's per-frame step std
+    from torchpf.tracker import _diffusion_std
+
+    sigma = 12.0 * torch.as_tensor(_diffusion_std(tracker.dynamics)).to(smoother.precision)
+    moving = sigma > 0
+    assert bool(moving.any())
+    assert torch.allclose(smoother.precision[moving], sigma[moving] ** -2)
     tau = {"refine_options": {"cue_options": {"tau": 4.0}}}
     smoother = Tracker(skel, cams, n_particles=200, progress=False, filter_options=tau)._smoother()
     assert (smoother.cue.tau, smoother.cue.n_samples) == (4.0, SAMPLES)
