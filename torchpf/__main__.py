@@ -4,7 +4,7 @@
         --out track.csv [--init auto|truth|POSE.csv] [--fps F]
     python -m torchpf evaluate track.csv [run2.csv ...] --truth truth.csv --skeleton S.urdf
     python -m torchpf calibrate SEQ_DIR --skeleton S.urdf --out FITTED.urdf [--frames K] \\
-        [--init auto|truth|POSE.csv] [--outline-offsets PX]
+        [--init auto|truth|POSE.csv] [--outline-offsets PX] [--radius-sigma SIGMA]
     python -m torchpf masks VIDEO_OR_FOLDER... --cameras cameras.yaml --out SEQ_DIR \\
         [--background-frames N | --clean-plate IMG...]
     python -m torchpf render TRACK.csv --skeleton S.urdf --sequence SEQ_DIR --out overlay.mp4
@@ -139,6 +139,14 @@ def _parser() -> argparse.ArgumentParser:
         help="also fit each mask's outline offset (px added to every projected radius, held near 0 by "
         "this std: a segmenter that thins or fattens one camera's masks), so that it does not thin or "
         "fatten the body (torchpf.calibrate.fit_body view_offset_sigma; default: masks as they are)",
+    )
+    ca.add_argument(
+        "--radius-sigma",
+        type=float,
+        metavar="SIGMA",
+        help="hold the bone groups' log radii near their mean with this std (a prior on the spread of the "
+        "body's widths, for masks with defects or poses that are off, e.g. 0.25; "
+        "torchpf.calibrate.fit_body radius_sigma; default: each radius free)",
     )
     ca.add_argument("--no-progress", action="store_true")
     add_runtime_options(ca)
@@ -461,6 +469,8 @@ def _calibrate(args) -> int:
         raise CliError(f"--frames must be >= 1, got {args.frames}")
     if args.outline_offsets is not None and not args.outline_offsets > 0:
         raise CliError(f"--outline-offsets must be > 0 px, got {args.outline_offsets}")
+    if args.radius_sigma is not None and not args.radius_sigma > 0:
+        raise CliError(f"--radius-sigma must be > 0, got {args.radius_sigma}")
     seq = read_sequence(args.sequence)
     k = min(args.frames, len(seq.masks))
     if k == 0:
@@ -493,6 +503,7 @@ def _calibrate(args) -> int:
         fit_lengths=args.fit_lengths,
         iterations=args.iterations,
         view_offset_sigma=args.outline_offsets,
+        radius_sigma=args.radius_sigma,
         progress=not args.no_progress,
     )
     fitted.save_urdf(args.out)

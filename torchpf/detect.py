@@ -122,6 +122,7 @@ def fit_body_to_frame(
     *,
     iterations: int = 200,
     scale_sigma: float | None = 0.03,
+    radius_sigma: float | None = None,
     **options,
 ):
     """:func:`torchpf.calibrate.fit_body` on one frame's silhouettes (a :class:`Frame`, :class:`Silhouettes`
@@ -139,7 +140,12 @@ def fit_body_to_frame(
     are weak evidence of it. On frames 0 and 1 of the foreign renders of the 11 CMU clips (true scale 1), a
     free scale came out at 0.98-1.02 on clean masks but 0.87-1.03 on noisy ones (a body 13 % too small is
     44 mm off at the true pose); held at 0.03, 1.00-1.02 on clean and 1.00-1.04 on noisy masks. ``None``
-    fits it freely; ``options`` go to ``fit_body``."""
+    fits it freely. ``radius_sigma`` holds the spread of the log radii (``fit_body``; ``None``, the default,
+    fits each radius freely): the fits ``Tracker`` makes (frame 0, then the refit at the first tracked
+    poses) see defects at poses that are off, and freely fitted they came out absurd on the noisy runs (a
+    1-8 mm torso, 100 mm hands); at 0.25 the bodies stay sane, but tracks on them were no closer to the
+    truth (four noisy draws: 66.4 mm both) and a 5-frame fit's refined poses drifted further (BENCHMARKS.md,
+    "Round 10"). ``options`` go to ``fit_body``."""
     from torchpf.calibrate import fit_body
 
     frames = []
@@ -169,6 +175,7 @@ def fit_body_to_frame(
         frames_used=len(frames),
         iterations=iterations,
         scale_sigma=scale_sigma,
+        radius_sigma=radius_sigma,
         **options,
     )
 
