@@ -822,8 +822,9 @@ class Tracker(nn.Module):
     def _smoother(self):
         """The :class:`~torchpf.smooth.TrajectorySmoother` of ``track(smooth=...)``: the hybrid refiner's cue
         (else the default distance cue; the default one with the smoother's :data:`~torchpf.smooth.SAMPLES`
-        foreground samples), ``sigma`` from ``smooth_options`` or ``scale`` times the motion prior's
-        per-frame step std (the prior this tracker built for the sequence's rate)."""
+        foreground samples and :data:`~torchpf.smooth.AREA_POINTS` model points), ``sigma`` from
+        ``smooth_options`` or ``scale`` times the motion prior's per-frame step std (the prior this tracker
+        built for the sequence's rate)."""
         from torchpf.smooth import TrajectorySmoother
 
         options = dict(self.smooth_options)
@@ -836,7 +837,7 @@ class Tracker(nn.Module):
         refine = dict(self.filter_options.get("refine_options") or {})
         if "cue" not in options and refiner is not None:
             if refine.get("cue", "silhouette_distance") == "silhouette_distance":
-                # the refiner's cue by name, with the smoother's own number of foreground samples
+                # the refiner's cue by name, with the smoother's own samples and model points
                 options["cue"] = "silhouette_distance"
                 options.setdefault("cue_options", refine.get("cue_options"))
             else:
