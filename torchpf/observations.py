@@ -148,6 +148,9 @@ class Silhouettes:
             by it, so that a fattened or thinned mask is not explained by a wrong pose. ``None``: 0.
             :meth:`~torchpf.likelihoods.images.ImageLikelihood.boundary_offset` measures it (what
             ``Tracker(boundary_offset=True)`` does each frame).
+        weight: optional (V,) or (..., V) weight (>= 0) of each mask's term in the silhouette cues' sums over
+            the cameras (``silhouette``, ``dual_silhouette``, ``silhouette_distance``, ``overlap``). ``None``:
+            1. :class:`~torchpf.smooth.TrajectorySmoother` sets it to down-weight the masks a defect spoiled.
 
     Derived (cached): :meth:`blurred` soft masks for smooth look-ups, :meth:`foreground_samples` fixed
     stratified points on the foreground (dual silhouette cue), :meth:`area` foreground pixel counts.
@@ -156,6 +159,7 @@ class Silhouettes:
     masks: torch.Tensor
     valid: torch.Tensor | None = None
     offset: torch.Tensor | None = None
+    weight: torch.Tensor | None = None
     # not an init field: a copy (dataclasses.replace, e.g. the tracker's per-frame device copy) starts with
     # its own empty cache instead of filling the original's
     _cache: dict = field(default_factory=dict, repr=False, init=False)
@@ -182,11 +186,28 @@ class Silhouettes:
             if not bool(torch.isfinite(offset).all()):
                 raise ValueError("offset must be finite (pixels)")
             self.offset = offset.to(m.device)
+        if self.weight is not None:
+            weight = torch.as_tensor(self.weight, dtype=m.dtype if m.is_floating_point() else None)
+            if weight.shape != self.valid.shape:
+                raise ValueError(
+                    f"weight must have one value per mask, shape {tuple(self.valid.shape)}, "
+                    f"got {tuple(weight.shape)}"
+                )
+            if not bool((torch.isfinite(weight) & (weight >= 0)).all()):
+                raise ValueError("weight must be finite and >= 0")
+            self.weight = weight.to(m.device)
 
     def with_offset(self, offset: torch.Tensor | None) -> Silhouettes:
         """These masks with the outline ``offset`` (pixels, see the class docstring); the derived images
         (distance transforms, samples) do not depend on it and are shared with ``self``."""
         out = dataclasses.replace(self, offset=offset)
+        out._cache = self._cache
+        return out
+
+    def with_weight(self, weight: torch.Tensor | None) -> Silhouettes:
+        """These masks with the per-mask ``weight`` of the cues' camera sums (see the class docstring); the
+        derived images are shared with ``self``."""
+        out = dataclasses.replace(self, weight=weight)
         out._cache = self._cache
         return out
 

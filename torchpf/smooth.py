@@ -30,6 +30,21 @@ On the same filter tracks (11 CMU clips, two draws of noisy masks, one run each)
 from 69.5 / 71.3 to 65.8 / 64.9 mm, none worse by more than 0.3 mm (35_24: 152 -> 96 mm); 9 frames gave
 65.5 / 64.9.
 
+**A mask a defect spoiled.** A segmentation's defect spoils one camera's mask in one frame, not all of them
+at once: a 1-px erosion wipes a 2-3 px arm out of that camera, a limb drops out, a closing merges the legs.
+The squared cue of that camera then pulls the whole body towards the defect, with the pull of a good mask.
+So each frame's camera term ``E_{t,l}`` is made robust (``robust``; iteratively reweighted least squares):
+every ``reweight`` steps it is weighted by ``w_{t,l} = min(1, (1 + 1/k) / (1 + E_{t,l} / (k u_{t,l})))``,
+``k`` = :data:`ROBUST`, where the usual cost ``u_{t,l} = m_l median_{l'}(E_{t,l'} / m_{l'})`` is camera
+``l``'s level ``m_l`` (the median of its terms over the window's frames that see someone) times how costly
+frame ``t`` is in all its cameras. A mask up to its usual cost weighs 1 (on clean masks next to nothing
+changes); beyond, the weight falls as the derivative of a Cauchy-type cost ``log(1 + E / (k u))``: a mask
+that costs far more than the frame's other masks is heard much less, and the other cameras and the
+neighbouring frames decide. A pose that is off costs in every camera (the first frame after a gap, a
+re-acquired track) and keeps its weights: measured against the camera's level alone, such a frame was
+weighed down and the prior pulled it back towards the lost frames (a re-acquired pose 0.3 m off instead of
+0.05).
+
 Descent is the refiner's projected, damped Adam (:func:`torchpf.refine.damped_adam_step`) on all frames at
 once, keep-best per trajectory (the total ``E`` never increases), joint limits enforced. Long sequences go
 in overlapping windows of ``window`` frames (memory is one window's masks): each window after the first
@@ -67,7 +82,7 @@ from torch import Tensor, nn
 from torchpf.observations import Silhouettes
 from torchpf.refine import damped_adam_step, damping_factor, descent_setup
 
-__all__ = ["AREA_POINTS", "SAMPLES", "SmoothResult", "TrajectorySmoother"]
+__all__ = ["AREA_POINTS", "ROBUST", "SAMPLES", "SmoothResult", "TrajectorySmoother"]
 
 #: Foreground samples per camera of the default cue. The smoother sees each frame once per step (one pose,
 #: not the filter's hundreds), so it can afford 4x the refiner's 128. On eight sets of saved filter tracks
@@ -82,6 +97,10 @@ SAMPLES = 512
 #: saved filter tracks (noisy foreign renders, ten draws of the defects: mean 70.1 -> 68.3 mm), for ~11 ms per
 #: frame (BENCHMARKS.md, "Round 10").
 AREA_POINTS = (16, 4)
+
+#: The default scale ``k`` of the cameras' robust weights (``TrajectorySmoother(robust=...)``; module
+#: docstring, "A mask a defect spoiled").
+ROBUST = 0.5
 
 
 @dataclass
@@ -123,6 +142,14 @@ class TrajectorySmoother(nn.Module):
         overlap: frames a window re-optimises of the one before (>= 2: its two anchors are among them).
         median: the descent starts from the track's running median over this many frames (odd; 1: from the
             track itself); the track as given is kept where its energy is lower (module docstring).
+        robust: the scale ``k`` of the cameras' robust weights (module docstring, "A mask a defect
+            spoiled"): each frame's camera term is weighted by ``min(1, (1 + 1/k) / (1 + e / (k u)))``,
+            ``e`` its energy at the current trajectory and ``u`` its usual cost (that camera's median level
+            times the frame's median over its cameras), recomputed every ``reweight`` steps. ``None``:
+            every mask weighs 1. Needs a cue with per-camera terms
+            (:meth:`~torchpf.likelihoods.images.ImageLikelihood.camera_log_likelihoods`); another cue is
+            used unweighted.
+        reweight: descent steps between two computations of the robust weights.
     """
 
     def __init__(
@@ -140,6 +167,8 @@ class TrajectorySmoother(nn.Module):
         window: int = 64,
         overlap: int = 8,
         median: int = 5,
+        robust: float | None = ROBUST,
+        reweight: int = 30,
     ):
         super().__init__()
         if cue == "silhouette_distance":
@@ -161,6 +190,12 @@ class TrajectorySmoother(nn.Module):
         self.skeleton = skeleton
         self.steps, self.window, self.overlap = int(steps), int(window), int(overlap)
         self.median = int(median)
+        if robust is not None and not robust > 0:
+            raise ValueError(f"robust must be > 0 or None, got {robust}")
+        if not (int(reweight) == reweight and reweight >= 1):
+            raise ValueError(f"reweight must be a number of steps >= 1, got {reweight}")
+        self.robust = None if robust is None else float(robust)
+        self.reweight = int(reweight)
         self.damping = float(damping)
         self.register_buffer("lr", torch.where(sigma == 0, 0.0, lr.to(sigma.device)))
         # 1 / sigma^2 of the prior; a held DOF has no step, so its weight only needs to be finite
@@ -186,23 +221,33 @@ class TrajectorySmoother(nn.Module):
         damp = damping_factor(self.damping, lr)
 
         own = hasattr(self.cue, "log_likelihood_and_grad")
+        robust = (
+            self.robust is not None
+            and isinstance(obs, Silhouettes)
+            and hasattr(self.cue, "camera_log_likelihoods")
+        )
+        weighted = {"obs": obs}  # the window's masks with their current robust weights
 
         def energy_and_grad(z):
+            seen = weighted["obs"]
             with torch.enable_grad():
                 zr = z.detach().requires_grad_(True)
                 energy = self.prior_energy(zr, anchors)
                 if not own:  # the cue through autograd
-                    energy = energy - self.cue(zr.reshape(T * B, 1, D), obs).reshape(T, B).sum(0)
+                    energy = energy - self.cue(zr.reshape(T * B, 1, D), seen).reshape(T, B).sum(0)
                 # (fewer than 3 frames in all: no acceleration, no prior, no graph)
                 g = torch.autograd.grad(energy.sum(), zr)[0] if energy.requires_grad else torch.zeros_like(z)
             energy = energy.detach()
             if own:  # the cue's own gradient: no backward pass through forward kinematics
-                loglik, grad = self.cue.log_likelihood_and_grad(z.reshape(T * B, 1, D), obs)
+                loglik, grad = self.cue.log_likelihood_and_grad(z.reshape(T * B, 1, D), seen)
                 energy = energy - loglik.reshape(T, B).sum(0).to(z)
                 g = g - grad.reshape(T, B, D).to(z)
             return energy, g
 
-        cur = self.skeleton.clamp(x.detach())
+        track = self.skeleton.clamp(x.detach())
+        if robust:
+            weighted["obs"] = self._robust_weights(track, obs)
+        cur = track
         best, best_e = cur, torch.full((B,), math.inf, dtype=x.dtype, device=x.device)
         first = None
         if start is not None:  # the track as given is a candidate too: its energy is E before
@@ -211,6 +256,13 @@ class TrajectorySmoother(nn.Module):
             cur = self.skeleton.clamp(start.detach())
         m, v = torch.zeros_like(cur), torch.zeros_like(cur)
         for step in range(self.steps + 1):
+            if robust and step % self.reweight == 0:
+                # new weights, a new objective: the candidates are compared under it from here on
+                weighted["obs"] = self._robust_weights(cur, obs)
+                best_e = torch.full_like(best_e, math.inf)
+                if start is not None:
+                    e0, _ = energy_and_grad(track)
+                    best, best_e = track, torch.where(torch.isnan(e0), best_e, e0)
             e, grad = energy_and_grad(cur)
             first = e if first is None else first
             better = e < best_e  # NaN compares False
@@ -224,6 +276,25 @@ class TrajectorySmoother(nn.Module):
         # a trajectory whose energy was never finite keeps the track
         stuck = ~torch.isfinite(best_e)
         return torch.where(stuck.view(1, B, 1), x, best), first, torch.where(stuck, first, best_e)
+
+    @torch.no_grad()
+    def _robust_weights(self, z: Tensor, obs: Silhouettes) -> Silhouettes:
+        """``obs`` (``(T B, V, H, W)``) with each mask's robust weight at the trajectory ``z (T, B, D)``
+        (``robust`` in the class docstring), times the weight the mask came with."""
+        T, B, D = z.shape
+        e = -self.cue.camera_log_likelihoods(self.cue.body(z.reshape(T * B, 1, D)), obs)
+        # a missing or empty mask (a camera that sees nobody) has no term: it must not set the usual level
+        seen = (obs.valid & (obs.area() > 0)).reshape(T * B, -1).to(e.device)
+        e = torch.where(seen, e.reshape(T * B, -1), torch.nan).reshape(T, B, -1)
+        level = e.nanmedian(0, keepdim=True).values  # (1, B, V): each camera's level in this window
+        # a mask is spoiled where it costs more than the frame's other masks, each on its camera's level: a
+        # pose that is off (after a gap, a recovery) costs in every camera and keeps its weights
+        typical = level * (e / level.clamp_min(1e-12)).nanmedian(-1, keepdim=True).values
+        k = self.robust
+        # 1 up to the camera's median level: an ordinary mask keeps the cue's full weight against the prior
+        w = ((1.0 + 1.0 / k) / (1.0 + e.clamp_min(0) / (k * typical).clamp_min(1e-12))).clamp(max=1.0)
+        w = torch.nan_to_num(w, nan=1.0).reshape(T * B, -1).to(obs.masks.dtype)
+        return obs.with_weight(w if obs.weight is None else w * obs.weight)
 
     def forward(self, x: Tensor, observations: Sequence[Silhouettes]) -> SmoothResult:
         """Smooth ``x (T, ..., D)`` (a track's estimates: frames first, then any batch of sequences, on the
@@ -326,7 +397,10 @@ def _stack(observations: list, batch: int) -> Silhouettes | Tensor | None:
     # the masks' outline offset (Silhouettes.offset) where a frame has one, 0 px for the others
     offsets = any(o is not None and o.offset is not None for o in obs)
     zero = torch.zeros(batch, V, device=ref.masks.device) if offsets else None
-    masks, valid, offset = [], [], []
+    # and the masks' weights where a frame has them, 1 for the others
+    weights = any(o is not None and o.weight is not None for o in obs)
+    one = torch.ones(batch, V, device=ref.masks.device) if weights else None
+    masks, valid, offset, weight = [], [], [], []
     for o in obs:
         if o is None:
             masks.append(ref.masks.new_zeros(batch, V, H, W))
@@ -337,6 +411,12 @@ def _stack(observations: list, batch: int) -> Silhouettes | Tensor | None:
         if offsets:
             none = o is None or o.offset is None
             offset.append(zero if none else o.offset.reshape(-1, V).expand(batch, -1))
+        if weights:
+            none = o is None or o.weight is None
+            weight.append(one if none else o.weight.reshape(-1, V).expand(batch, -1))
     return Silhouettes(
-        torch.cat(masks), valid=torch.cat(valid), offset=torch.cat(offset) if offsets else None
+        torch.cat(masks),
+        valid=torch.cat(valid),
+        offset=torch.cat(offset) if offsets else None,
+        weight=torch.cat(weight) if weights else None,
     )

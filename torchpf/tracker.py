@@ -163,10 +163,11 @@ def _evidence(obs, fields) -> bool:
 
 
 def _observed_fields(likelihood) -> set[str] | None:
-    """The :class:`Frame` fields the likelihood's terms read (their ``obs_field``), None if one is unknown."""
+    """The :class:`Frame` fields the likelihood's terms read (their ``obs_field``), None if one is unknown.
+    A prior term (``obs_field`` None, e.g. :class:`~torchpf.likelihoods.SelfCollisionPrior`) reads none."""
     fields = set()
     for module in likelihood.modules():
-        if hasattr(module, "obs_field"):
+        if hasattr(module, "obs_field") and module.obs_field is not None:
             if not module.obs_field:
                 return None
             fields.add(module.obs_field)
@@ -289,7 +290,8 @@ class Tracker(nn.Module):
             (BENCHMARKS.md, "The smoother's start"); its cue reading 512 foreground samples per camera
             (the refiner's 128), 1.2-1.6 mm closer still (BENCHMARKS.md, "Round 9"); with twice the model
             points per capsule, 120 steps and ``scale`` 12, 1.1-2.2 mm closer again (BENCHMARKS.md,
-            "Round 10").
+            "Round 10"); with each camera's mask down-weighted where it costs far more than its camera's
+            usual (``robust``, :data:`~torchpf.smooth.ROBUST`), closer again (BENCHMARKS.md, "Round 11").
             ``False`` for the filter alone (an online use).
         smooth_options: keywords of :class:`~torchpf.smooth.TrajectorySmoother`; besides its own, ``scale``
             (default 12): its acceleration std ``sigma`` is ``scale`` times the motion prior's per-frame
@@ -566,6 +568,14 @@ class Tracker(nn.Module):
     #: failed 22.7 against 21.1 %; BENCHMARKS.md, "Outline offsets in the body fit"), so it is an option.
     refit_view_offset: float | None = None
 
+    #: The spread of the body's widths in ``track``'s body fits (frame 0 and the refit; the
+    #: ``radius_sigma`` of :func:`torchpf.calibrate.fit_body`; None: each bone group's radius fitted
+    #: freely). At 0.25 the bodies fitted to noisy foreign renders stay sane (a 35-70 mm torso where a free
+    #: fit gives 1-8 mm and 100 mm hands), but the tracks were no closer: four noisy draws paired 0.0 mm,
+    #: and with the limb-torso prior (``"self_collision"``) +4.7 mm over four (BENCHMARKS.md, "Round 10"
+    #: and "Round 11"). An option for bodies a user knows to be ordinary.
+    fit_radius_sigma: float | None = None
+
     def with_skeleton(self, skeleton) -> Tracker:
         """The same tracker (all keywords alike) on another skeleton, e.g. a body fitted to the masks. It runs
         where this one runs now (:meth:`to` included), at the frame rate its prior was built for."""
@@ -701,7 +711,9 @@ class Tracker(nn.Module):
         if how != "auto" and self._calibrates(calibrate, frames[0], init=how):
             from torchpf.detect import fit_body_to_frame
 
-            fitted, _ = fit_body_to_frame(self.skeleton, self.cameras, frames[0], init)
+            fitted, _ = fit_body_to_frame(
+                self.skeleton, self.cameras, frames[0], init, radius_sigma=self.fit_radius_sigma
+            )
             fitted, _, _ = self._refit(fitted, fitted.clamp(init), frames, seed, fps, self.refit_frames)
             # The track starts at the pose given, not at the fit's: refined on one frame with defects, the
             # fit's pose drifts (60-65 mm on noisy foreign renders, legs crossed in 3-4 of 11 clips); the
@@ -943,6 +955,7 @@ class Tracker(nn.Module):
             [first_frames[t] for t in used],
             before.angles[used].double(),
             view_offset_sigma=self.refit_view_offset,
+            radius_sigma=self.fit_radius_sigma,
         )
         if not gate:
             return refit, pose, {"frames": len(used), "refit": True}

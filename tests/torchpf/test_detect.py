@@ -372,7 +372,10 @@ def test_track_fits_an_uncalibrated_body_at_the_initial_pose(case, device):
         starts.append(init.clone())
         return spread(self, init, generator)
 
+    asked = []  # the keywords of each fit
+
     def fitting(skeleton, cameras, obs, pose, **options):
+        asked.append(options)
         fits.append((obs, torch.as_tensor(pose).clone()))
         fits[-1] += fit(skeleton, cameras, obs, pose, **options)
         return fits[-1][2:]
@@ -429,3 +432,9 @@ def test_track_fits_an_uncalibrated_body_at_the_initial_pose(case, device):
     spied(holed)
     assert len(fits) == 2 and [id(f) for f in fits[1][0]] == [id(holed[t]) for t in (0, 1, 3)]
     assert fits[0][3].offsets is None and fits[1][3].offsets.shape == (3, len(case.cameras))
+    # the widths' prior reaches both fits (None, the default, fits them freely)
+    assert [a["radius_sigma"] for a in asked] == [None] * len(asked)
+    tracker.refit_view_offset, tracker.fit_radius_sigma = None, 0.25
+    asked.clear()
+    spied(frames)
+    assert len(fits) == 2 and [a["radius_sigma"] for a in asked] == [0.25, 0.25]

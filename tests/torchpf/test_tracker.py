@@ -394,6 +394,10 @@ def test_auto_filter_refines_where_silhouettes_give_the_cue(scene):
     assert Tracker(skel, cams, likelihood="pointcloud", progress=False).filter_name == "apf"
     assert Tracker(skel, None, likelihood="pointcloud", progress=False).filter_name == "apf"
     assert Tracker(skel, cams, filter="sir", progress=False).filter_name == "sir"
+    # a prior term among the cues (it reads no observation) leaves the silhouettes' filter and smoothing
+    cues = ("silhouette", "dual_silhouette", "self_collision")
+    with_prior = Tracker(skel, cams, likelihood=cues, progress=False)
+    assert with_prior.filter_name == "hybrid" and with_prior._reads_silhouettes()
 
 
 @pytest.mark.parametrize("budget", [30, 60, 100, 500])

@@ -65,6 +65,7 @@ Example::
 """
 
 from torchpf.likelihoods.base import LIKELIHOODS, Body, Likelihood
+from torchpf.likelihoods.collision import SelfCollisionPrior
 from torchpf.likelihoods.images import (
     ChamferLikelihood,
     DualSilhouetteLikelihood,
@@ -94,6 +95,7 @@ __all__ = [
     "OverlapLikelihood",
     "PointCloudLikelihood",
     "ProductLikelihood",
+    "SelfCollisionPrior",
     "SilhouetteDistanceLikelihood",
     "SilhouetteLikelihood",
     "SkinBlobLikelihood",

@@ -5,9 +5,9 @@ kinematics) and one frame's observation to log-likelihoods. :meth:`Likelihood.fo
 and calls :meth:`Likelihood.log_likelihood_body`; :class:`~torchpf.likelihoods.ProductLikelihood` computes
 it once and hands it to each of its terms, so several cues share one FK without any hidden cache.
 
-Cues register by name in :data:`LIKELIHOODS` (``silhouette``, ``dual_silhouette``, ``overlap``,
-``pointcloud``, ``keypoints``, ``chamfer``, ``skin``), which :func:`~torchpf.likelihoods.make_likelihood`
-and the tracker's ``--likelihood`` read.
+Cues register by name in :data:`LIKELIHOODS` (``silhouette``, ``dual_silhouette``, ``silhouette_distance``,
+``overlap``, ``pointcloud``, ``keypoints``, ``chamfer``, ``skin``, and the prior term ``self_collision``),
+which :func:`~torchpf.likelihoods.make_likelihood` and the tracker's ``--likelihood`` read.
 
 Example::
 

@@ -76,6 +76,19 @@ class ImageLikelihood(Likelihood):
     def _distances(self, body: Body, obs) -> torch.Tensor:
         raise NotImplementedError(f"{type(self).__name__} has no per-camera distances")
 
+    def camera_log_likelihoods(self, body: Body, obs) -> torch.Tensor:
+        """(B, V) each camera's term of the log-likelihood, unweighted (a cue that sums per-camera terms)."""
+        raise NotImplementedError(f"{type(self).__name__} has no per-camera terms")
+
+    def _log_lik(self, body: Body, obs) -> torch.Tensor:
+        """The sum of :meth:`camera_log_likelihoods` over the cameras, each weighted by the masks'
+        :attr:`~torchpf.observations.Silhouettes.weight` where they have one."""
+        terms = self.camera_log_likelihoods(body, obs)
+        weight = getattr(obs, "weight", None)
+        if weight is not None:
+            terms = terms * body.rows(weight, 1).to(terms)
+        return terms.sum(-1)
+
     def _caps2d(self, body: Body, S: int, height: int, width: int, offset=None) -> Capsules2D:
         """The cue's capsules (:attr:`bones`) projected into the V cameras, in the pixel frame of a
         ``height x width`` observation (the cameras resized to it), camera-major: ``(S, V, N, C)`` for the
@@ -258,10 +271,10 @@ class SilhouetteLikelihood(ImageLikelihood):
         inside = _sample(obs.blurred(self.blur), pts, self.interpolation)
         return _pose_major(1.0 - (w * inside).sum(-1) / w.sum(-1).clamp_min(1e-9))
 
-    def _log_lik(self, body, obs: Silhouettes):
+    def camera_log_likelihoods(self, body, obs: Silhouettes):
         D = self._distances(body, obs)
         D = D * body.rows(obs.valid, 1).to(D.device)
-        return -(D * D).sum(-1) / (2 * self.sigma**2)
+        return -(D * D) / (2 * self.sigma**2)
 
 
 @LIKELIHOODS.register("dual_silhouette")
@@ -307,9 +320,9 @@ class DualSilhouetteLikelihood(ImageLikelihood):
         # a camera without foreground samples (empty or invalid mask) contributes 0
         return _pose_major(torch.where(ok, 1.0 - cov.mean(-1), 0.0))
 
-    def _log_lik(self, body, obs: Silhouettes):
+    def camera_log_likelihoods(self, body, obs: Silhouettes):
         D = self._distances(body, obs)
-        return -(D * D).sum(-1) / (2 * self.sigma**2)
+        return -(D * D) / (2 * self.sigma**2)
 
 
 @LIKELIHOODS.register("silhouette_distance")
@@ -411,8 +424,8 @@ class SilhouetteDistanceLikelihood(ImageLikelihood):
         # a camera without foreground samples (empty or invalid mask) contributes 0
         return _pose_major(torch.where(ok, model_term + cover_term, 0.0))
 
-    def _log_lik(self, body, obs: Silhouettes):
-        return -self._distances(body, obs).sum(-1) / (2 * self.sigma**2)
+    def camera_log_likelihoods(self, body, obs: Silhouettes):
+        return -self._distances(body, obs) / (2 * self.sigma**2)
 
 
 @LIKELIHOODS.register("overlap")
@@ -480,10 +493,10 @@ class OverlapLikelihood(SilhouetteLikelihood):
         union = w.sum(-1) + _per_camera(obs.area().to(w), S, 0) - inter
         return _pose_major(inter / union.clamp_min(1e-9))
 
-    def _log_lik(self, body, obs: Silhouettes):
+    def camera_log_likelihoods(self, body, obs: Silhouettes):
         ratio = self._ratios(body, obs)
         logr = torch.log(ratio.clamp_min(self.eps)) * body.rows(obs.valid, 1).to(ratio.device)
-        return self.beta * logr.sum(-1)
+        return self.beta * logr
 
 
 # Head and hands of the shipped models: human.urdf (CMU names) and fontmarty22.urdf.

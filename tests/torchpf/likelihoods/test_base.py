@@ -152,6 +152,7 @@ def test_registry_names_every_cue():
             "keypoints",
             "chamfer",
             "skin",
+            "self_collision",
         ]
     )
     assert LIKELIHOODS.get("pointcloud") is PointCloudLikelihood and not PointCloudLikelihood.needs_cameras
