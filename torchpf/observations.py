@@ -176,26 +176,24 @@ class Silhouettes:
             raise ValueError(f"masks must have shape (V, H, W) or (..., V, H, W), got {tuple(m.shape)}")
         self.masks = m
         self.valid = _valid(self.valid, tuple(m.shape[:-2]), "masks")
-        if self.offset is not None:
-            offset = torch.as_tensor(self.offset, dtype=m.dtype if m.is_floating_point() else None)
-            if offset.shape != self.valid.shape:
-                raise ValueError(
-                    f"offset must have one value per mask, shape {tuple(self.valid.shape)}, "
-                    f"got {tuple(offset.shape)}"
-                )
-            if not bool(torch.isfinite(offset).all()):
-                raise ValueError("offset must be finite (pixels)")
-            self.offset = offset.to(m.device)
-        if self.weight is not None:
-            weight = torch.as_tensor(self.weight, dtype=m.dtype if m.is_floating_point() else None)
-            if weight.shape != self.valid.shape:
-                raise ValueError(
-                    f"weight must have one value per mask, shape {tuple(self.valid.shape)}, "
-                    f"got {tuple(weight.shape)}"
-                )
-            if not bool((torch.isfinite(weight) & (weight >= 0)).all()):
-                raise ValueError("weight must be finite and >= 0")
-            self.weight = weight.to(m.device)
+        self.offset = self._per_mask("offset", self.offset, lambda t: torch.isfinite(t), "finite (pixels)")
+        self.weight = self._per_mask(
+            "weight", self.weight, lambda t: torch.isfinite(t) & (t >= 0), "finite and >= 0"
+        )
+
+    def _per_mask(self, name: str, value, ok, what: str) -> torch.Tensor | None:
+        """``value`` (one number per mask, or None) as a tensor on the masks' device, checked by ``ok``."""
+        if value is None:
+            return None
+        m = self.masks
+        t = torch.as_tensor(value, dtype=m.dtype if m.is_floating_point() else None)
+        if t.shape != self.valid.shape:
+            raise ValueError(
+                f"{name} must have one value per mask, shape {tuple(self.valid.shape)}, got {tuple(t.shape)}"
+            )
+        if not bool(ok(t).all()):
+            raise ValueError(f"{name} must be {what}")
+        return t.to(m.device)
 
     def with_offset(self, offset: torch.Tensor | None) -> Silhouettes:
         """These masks with the outline ``offset`` (pixels, see the class docstring); the derived images
