@@ -290,9 +290,11 @@ class TrajectorySmoother(nn.Module):
         # a mask is spoiled where it costs more than the frame's other masks, each on its camera's level: a
         # pose that is off (after a gap, a recovery) costs in every camera and keeps its weights
         typical = level * (e / level.clamp_min(1e-12)).nanmedian(-1, keepdim=True).values
+        # (a usual cost of next to 0 nats, a mask the body fits exactly, must not make every other a defect)
+        typical = typical.clamp_min(1e-3)
         k = self.robust
-        # 1 up to the camera's median level: an ordinary mask keeps the cue's full weight against the prior
-        w = ((1.0 + 1.0 / k) / (1.0 + e.clamp_min(0) / (k * typical).clamp_min(1e-12))).clamp(max=1.0)
+        # 1 up to the usual cost: an ordinary mask keeps the cue's full weight against the prior
+        w = ((1.0 + 1.0 / k) / (1.0 + e.clamp_min(0) / (k * typical))).clamp(max=1.0)
         w = torch.nan_to_num(w, nan=1.0).reshape(T * B, -1).to(obs.masks.dtype)
         return obs.with_weight(w if obs.weight is None else w * obs.weight)
 
