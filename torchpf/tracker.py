@@ -290,13 +290,15 @@ class Tracker(nn.Module):
             (BENCHMARKS.md, "The smoother's start"); its cue reading 512 foreground samples per camera
             (the refiner's 128), 1.2-1.6 mm closer still (BENCHMARKS.md, "Round 9"); with twice the model
             points per capsule, 120 steps and ``scale`` 12, 1.1-2.2 mm closer again (BENCHMARKS.md,
-            "Round 10"); with each camera's mask down-weighted where it costs far more than its camera's
-            usual (``robust``, :data:`~torchpf.smooth.ROBUST`), closer again (BENCHMARKS.md, "Round 11").
+            "Round 10"); with each camera's mask down-weighted where it costs far more than usual
+            (``robust``, :data:`~torchpf.smooth.ROBUST`), 2.1 / 1.5 mm closer again on two draws' saved
+            filter tracks, every track closer, clean ones as they were (end to end not resolved over ten
+            draws; BENCHMARKS.md, "Round 11").
             ``False`` for the filter alone (an online use).
         smooth_options: keywords of :class:`~torchpf.smooth.TrajectorySmoother`; besides its own, ``scale``
             (default 12): its acceleration std ``sigma`` is ``scale`` times the motion prior's per-frame
             step std (0.03 rad or m where the prior has none), unless ``sigma`` is given. The body refit's
-            first pass (:meth:`_refit`) smooths with ``median=1`` unless a ``median`` is given here.
+            first pass (:meth:`_refit`) smooths with ``median=1`` and ``robust=None`` unless given here.
         device, dtype: where and in which precision to run (observations are moved per frame).
         progress: tqdm progress bar.
     """
@@ -938,8 +940,11 @@ class Tracker(nn.Module):
         # The body is fitted at this pass's smoothed poses as the smoother took them from its own filter's
         # track: started from the track's running median (what the final track's smoothing does), the bodies
         # tracked no better (noisy foreign renders, two draws: 71.8 against 71.4 mm; BENCHMARKS.md,
-        # "The smoother's start"). A `median` in smooth_options is used in both passes.
-        first_pass.smooth_options = {"median": 1, **first_pass.smooth_options}
+        # "The smoother's start"). Nor did weighing each mask by its cost (``robust``): over ten noisy draws
+        # +0.6 mm (standard error 2.1) with it in both passes, while the final smoothing alone gained on
+        # every saved track (BENCHMARKS.md, "Round 11"). A `median` or `robust` in smooth_options is used in
+        # both passes.
+        first_pass.smooth_options = {"median": 1, "robust": None, **first_pass.smooth_options}
         before = first_pass.track(first_frames, init=pose, seed=seed, fps=fps, calibrate=False)
         # frames the fit can read: silhouettes in them and a finite tracked pose
         used = [

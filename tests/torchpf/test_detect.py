@@ -14,7 +14,7 @@ import torch
 
 from torchpf.detect import PersonDetector, looks_uncalibrated, visual_hull
 from torchpf.observations import Frame
-from torchpf.smooth import TrajectorySmoother
+from torchpf.smooth import ROBUST, TrajectorySmoother
 from torchpf.tracker import Tracker
 
 CMU = Path(__file__).resolve().parents[2].parent / "shared" / "mocap" / "cmu"
@@ -384,7 +384,7 @@ def test_track_fits_an_uncalibrated_body_at_the_initial_pose(case, device):
 
     def smoother(self, *args, **options):  # the running median each smoothing starts from
         made(self, *args, **options)
-        medians.append(self.median)
+        medians.append((self.median, self.robust))
 
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(Tracker, "initial_particles", seen)
@@ -392,8 +392,9 @@ def test_track_fits_an_uncalibrated_body_at_the_initial_pose(case, device):
         patch.setattr(TrajectorySmoother, "__init__", smoother)
         with pytest.warns(UserWarning, match="looks uncalibrated.*at the given pose"):
             fitted = tracker.track(frames, init=case.angles[0])
-    # the refit's pass smooths from its filter's track, the final track from the track's running median
-    assert medians == [1, 5]
+    # the refit's pass smooths from its filter's track with every mask weighing 1, the final track from
+    # the track's running median with the masks' robust weights
+    assert medians == [(1, None), (5, ROBUST)]
     assert not looks_uncalibrated(fitted.skeleton)
     # first frame 0 at the given pose; then the 4 frames at the poses a track on that body found
     assert tracker.refit_frames >= 4 and len(fits) == 2
