@@ -940,10 +940,9 @@ class Tracker(nn.Module):
         # The body is fitted at this pass's smoothed poses as the smoother took them from its own filter's
         # track: started from the track's running median (what the final track's smoothing does), the bodies
         # tracked no better (noisy foreign renders, two draws: 71.8 against 71.4 mm; BENCHMARKS.md,
-        # "The smoother's start"). Nor did weighing each mask by its cost (``robust``): over ten noisy draws
-        # +0.6 mm (standard error 2.1) with it in both passes, while the final smoothing alone gained on
-        # every saved track (BENCHMARKS.md, "Round 11"). A `median` or `robust` in smooth_options is used in
-        # both passes.
+        # "The smoother's start"). The masks' robust weights are left to the final smoothing, where saved
+        # tracks measured their gain: with them in both passes ten noisy draws read +0.6 mm (standard error
+        # 2.1; BENCHMARKS.md, "Round 11"). A `median` or `robust` in smooth_options is used in both passes.
         first_pass.smooth_options = {"median": 1, "robust": None, **first_pass.smooth_options}
         before = first_pass.track(first_frames, init=pose, seed=seed, fps=fps, calibrate=False)
         # frames the fit can read: silhouettes in them and a finite tracked pose
