@@ -247,23 +247,18 @@ class TrajectorySmoother(nn.Module):
             return energy, g
 
         track = self.skeleton.clamp(x.detach())
-        if robust:
-            weighted["obs"] = self._robust_weights(track, obs)
-        cur = track
-        best, best_e = cur, torch.full((B,), math.inf, dtype=x.dtype, device=x.device)
+        cur = track if start is None else self.skeleton.clamp(start.detach())
+        best, best_e = track, torch.full((B,), math.inf, dtype=x.dtype, device=x.device)
         first = None
-        if start is not None:  # the track as given is a candidate too: its energy is E before
-            first, _ = energy_and_grad(cur)
-            best_e = torch.where(torch.isnan(first), best_e, first)
-            cur = self.skeleton.clamp(start.detach())
         m, v = torch.zeros_like(cur), torch.zeros_like(cur)
         for step in range(self.steps + 1):
-            if robust and step % self.reweight == 0:
-                # new weights, a new objective: the candidates are compared under it from here on
-                weighted["obs"] = self._robust_weights(cur, obs)
-                best_e = torch.full_like(best_e, math.inf)
-                if start is not None:
+            if step == 0 or (robust and step % self.reweight == 0):
+                if robust:  # new weights, a new objective: the candidates are compared under it from here on
+                    weighted["obs"] = self._robust_weights(cur, obs)
+                    best_e = torch.full_like(best_e, math.inf)
+                if start is not None:  # the track as given is a candidate too: its first energy is E before
                     e0, _ = energy_and_grad(track)
+                    first = e0 if first is None else first
                     best, best_e = track, torch.where(torch.isnan(e0), best_e, e0)
             e, grad = energy_and_grad(cur)
             first = e if first is None else first
@@ -386,7 +381,7 @@ def _running_median(x: Tensor, k: int, revolute: Tensor) -> Tensor:
 def _stack(observations: list, batch: int) -> Silhouettes | Tensor | None:
     """``(T B, V, H, W)`` silhouettes of a window's frames (a :class:`~torchpf.observations.Frame` gives its
     ``silhouettes``; a missing frame has every camera invalid, so only the prior sees it; the frames' outline
-    offsets kept, 0 px where a frame has none), or tensors
+    offsets and mask weights kept, 0 px and 1 where a frame has none), or tensors
     ``(..., E)`` per frame stacked to ``(T B, E)`` for a cue that reads tensors; None when no frame of the
     window has one."""
     obs = [getattr(o, "silhouettes", o) for o in observations]
@@ -398,13 +393,7 @@ def _stack(observations: list, batch: int) -> Silhouettes | Tensor | None:
             raise ValueError("a frame without an observation is only understood with silhouettes")
         return torch.cat([torch.as_tensor(o).reshape(batch, -1) for o in obs])
     V, H, W = ref.masks.shape[-3:]
-    # the masks' outline offset (Silhouettes.offset) where a frame has one, 0 px for the others
-    offsets = any(o is not None and o.offset is not None for o in obs)
-    zero = torch.zeros(batch, V, device=ref.masks.device) if offsets else None
-    # and the masks' weights where a frame has them, 1 for the others
-    weights = any(o is not None and o.weight is not None for o in obs)
-    one = torch.ones(batch, V, device=ref.masks.device) if weights else None
-    masks, valid, offset, weight = [], [], [], []
+    masks, valid = [], []
     for o in obs:
         if o is None:
             masks.append(ref.masks.new_zeros(batch, V, H, W))
@@ -412,15 +401,19 @@ def _stack(observations: list, batch: int) -> Silhouettes | Tensor | None:
         else:
             masks.append(o.masks.reshape(-1, V, H, W).expand(batch, -1, -1, -1))
             valid.append(o.valid.reshape(-1, V).expand(batch, -1))
-        if offsets:
-            none = o is None or o.offset is None
-            offset.append(zero if none else o.offset.reshape(-1, V).expand(batch, -1))
-        if weights:
-            none = o is None or o.weight is None
-            weight.append(one if none else o.weight.reshape(-1, V).expand(batch, -1))
+
+    def per_mask(name: str, fill: float) -> Tensor | None:
+        """A per-mask field (``offset``, ``weight``) where a frame has one, ``fill`` for the others; None
+        where no frame has it."""
+        given = [None if o is None else getattr(o, name) for o in obs]
+        if all(g is None for g in given):
+            return None
+        default = torch.full((batch, V), fill, device=ref.masks.device)
+        return torch.cat([default if g is None else g.reshape(-1, V).expand(batch, -1) for g in given])
+
     return Silhouettes(
         torch.cat(masks),
         valid=torch.cat(valid),
-        offset=torch.cat(offset) if offsets else None,
-        weight=torch.cat(weight) if weights else None,
+        offset=per_mask("offset", 0.0),  # the masks' outline offsets, 0 px where a frame has none
+        weight=per_mask("weight", 1.0),
     )
