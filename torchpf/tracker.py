@@ -245,7 +245,10 @@ class Tracker(nn.Module):
             (:class:`~torchpf.likelihoods.TemperedLikelihood`), or ``"auto"``: set per sequence on the first
             frame so that one prediction step of the initial particles keeps ``ESS / N = 0.2``
             (:func:`~torchpf.likelihoods.calibrate_temperature`), whatever the masks' resolution and noise
-            make the cue's sharpness. ``result.stats["temperature"]`` reports it.
+            make the cue's sharpness. ``result.stats["temperature"]`` reports it. Not the default: on
+            noisy foreign renders it tracked two draws at 87.0 / 74.5 mm against 67.4 / 66.4 with the
+            fixed exponent 1 (BENCHMARKS.md, "Round 12"); the hybrid's last annealing layer is meant to be
+            sharp (ESS ~2 of 167), its estimate is the refined one.
         dynamics: a motion prior object or a registered name (see :func:`make_dynamics`).
         dynamics_options: keywords of the named prior's factory (e.g. ``{"scale": 0.5}``).
         proposal: optional importance distribution (``sample(state, obs, generator) -> (x, log_q)``).
@@ -277,8 +280,9 @@ class Tracker(nn.Module):
             camera and frame it took two clips from 97 / 110 to 61 / 59 mm; on the full noisy preset (11
             clips, three draws of the defects, 2 runs) with today's filter 85 mm against 84 (96 / 82 / 78
             per draw), clean masks 32-34 mm against 31 (BENCHMARKS.md, "The rig's unanimated channels, and
-            the masks' outline offset, as defaults"). The smoothing reads the masks without it (with it: 81
-            / 80 mm against 75 / 78 on two draws).
+            the masks' outline offset, as defaults"); four draws with session 21's defaults: 69.1 mm
+            against 64.0, "Round 12"). The smoothing reads the masks without it (with it: 81 / 80 mm
+            against 75 / 78 on two draws; farther on every saved track re-smoothed in session 22).
         smooth: after the last frame, smooth the whole track on the refinement's cue under an acceleration
             prior (:class:`~torchpf.smooth.TrajectorySmoother`, a fixed-interval smoother: each frame's
             estimate then also sees the frames after it); ``result.filtered_angles`` keeps the filter's
