@@ -198,14 +198,16 @@ class Silhouettes:
     def with_offset(self, offset: torch.Tensor | None) -> Silhouettes:
         """These masks with the outline ``offset`` (pixels, see the class docstring); the derived images
         (distance transforms, samples) do not depend on it and are shared with ``self``."""
-        out = dataclasses.replace(self, offset=offset)
-        out._cache = self._cache
-        return out
+        return self._sharing_cache(offset=offset)
 
     def with_weight(self, weight: torch.Tensor | None) -> Silhouettes:
         """These masks with the per-mask ``weight`` of the cues' camera sums (see the class docstring); the
         derived images are shared with ``self``."""
-        out = dataclasses.replace(self, weight=weight)
+        return self._sharing_cache(weight=weight)
+
+    def _sharing_cache(self, **changes) -> Silhouettes:
+        """A copy with ``changes`` to fields the derived images do not depend on, sharing its cache."""
+        out = dataclasses.replace(self, **changes)
         out._cache = self._cache
         return out
 

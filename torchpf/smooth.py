@@ -228,10 +228,9 @@ class TrajectorySmoother(nn.Module):
             and isinstance(obs, Silhouettes)
             and hasattr(self.cue, "camera_log_likelihoods")
         )
-        weighted = {"obs": obs}  # the window's masks with their current robust weights
+        seen = obs  # the window's masks with their current robust weights (read when a step runs)
 
         def energy_and_grad(z):
-            seen = weighted["obs"]
             with torch.enable_grad():
                 zr = z.detach().requires_grad_(True)
                 energy = self.prior_energy(zr, anchors)
@@ -254,7 +253,7 @@ class TrajectorySmoother(nn.Module):
         for step in range(self.steps + 1):
             if step == 0 or (robust and step % self.reweight == 0):
                 if robust:  # new weights, a new objective: the candidates are compared under it from here on
-                    weighted["obs"] = self._robust_weights(cur, obs)
+                    seen = self._robust_weights(cur, obs)
                     best_e = torch.full_like(best_e, math.inf)
                 if start is not None:  # the track as given is a candidate too: its first energy is E before
                     e0, _ = energy_and_grad(track)
