@@ -884,6 +884,45 @@ def auto_setup(**options: Any) -> Callable[..., Any]:
 
 
 _LIMITS: dict[tuple[tuple[str, ...], str], tuple[torch.Tensor, torch.Tensor]] = {}
+_ACTIONS: dict[tuple[tuple[str, ...], str, float], list] = {}
+
+
+def _other_performers(seq_dir: Path, same_action: bool = False) -> tuple[str, dict[str, dict[str, str]]]:
+    """The rendered clip's stem and the ``INDEX.tsv`` rows of every clip of ``CMU_DIR`` by *another*
+    performer (with ``same_action`` only those of this clip's action): the user's mocap in a leave one
+    performer out evaluation."""
+    clip = Path(json.loads((Path(seq_dir) / "render.json").read_text())["clip"]).stem
+    index = _cmu_rows(Path(CMU_DIR))
+    if clip not in index:
+        raise ValueError(f"{clip} is not in {CMU_DIR}/INDEX.tsv: its performer is unknown")
+    me = index[clip]
+    others = {
+        c: r
+        for c, r in index.items()
+        if r["subject"] != me["subject"] and (not same_action or r["description"] == me["description"])
+    }
+    if not others:
+        raise ValueError(f"no clip of another performer than {me['subject']} in {CMU_DIR}/INDEX.tsv")
+    return clip, others
+
+
+def _mocap(clips, skeleton: Skeleton) -> list:
+    """Each CMU clip converted in ``skeleton``'s DOF order, its first frame (the CMU rest pose) dropped."""
+    from training.mocap import bvh_motion
+
+    return [bvh_motion(Path(CMU_DIR) / f"{c}.bvh", dof_names=skeleton.dof_names)[1:] for c in clips]
+
+
+def _learned_limits(seq_dir: Path, skeleton: Skeleton, margin: float, same_action: bool = False) -> Skeleton:
+    """``skeleton`` with the joint limits :func:`training.limits.fit_limits` learns from the other performers'
+    clips (what ``python -m training fit-limits`` writes); learned once per set of clips."""
+    from training.limits import fit_limits
+
+    _, others = _other_performers(seq_dir, same_action)
+    key = (tuple(others), skeleton.source)
+    if key not in _LIMITS:
+        _LIMITS[key] = fit_limits(_mocap(others, skeleton), skeleton, margin=margin)[:2]
+    return skeleton.with_limits(*_LIMITS[key])
 
 
 def learned_limits_setup(
@@ -899,32 +938,61 @@ def learned_limits_setup(
 
     def setup(seq_dir: Path, skeleton: Skeleton, *, n_particles: int = 500, **_) -> Tracker:
         from torchpf.sequence import read_sequence
-        from training.limits import fit_limits
-        from training.mocap import bvh_motion
 
-        clip = Path(json.loads((Path(seq_dir) / "render.json").read_text())["clip"]).stem
-        index = _cmu_rows(Path(CMU_DIR))
-        if clip not in index:
-            raise ValueError(f"{clip} is not in {CMU_DIR}/INDEX.tsv: its performer is unknown")
-        me = index[clip]
-        others = [
-            c
-            for c, r in index.items()
-            if r["subject"] != me["subject"] and (not same_action or r["description"] == me["description"])
-        ]
-        if not others:
-            raise ValueError(f"no clip of another performer than {me['subject']} in {CMU_DIR}/INDEX.tsv")
-        key = (tuple(others), skeleton.source)
-        if key not in _LIMITS:
-            motions = [
-                bvh_motion(Path(CMU_DIR) / f"{c}.bvh", dof_names=skeleton.dof_names)[1:] for c in others
-            ]
-            _LIMITS[key] = fit_limits(motions, skeleton, margin=margin)[:2]
-        limited = skeleton.with_limits(*_LIMITS[key])
+        limited = _learned_limits(seq_dir, skeleton, margin, same_action)
         return _tracker(seq_dir, limited, read_sequence(seq_dir).cameras, n_particles, **options)
 
     which = " of the same action" if same_action else ""
     setup.__doc__ = f"joint limits from the other performers' clips{which} (margin {margin} rad), {options}"
+    return setup
+
+
+def action_bank_setup(
+    limits: float | None = None,
+    components: int | str = "auto",
+    track_options: Mapping[str, Any] | None = None,
+    **options: Any,
+) -> Callable[..., Tracker]:
+    """A setup that tracks with a bank of action models (:class:`priors.bank.ActionBank`, the ``bank``
+    prior) learned from the *other performers'* clips, one model per action of ``INDEX.tsv`` (``python -m
+    training fit --action A`` on each action's clips: ``components`` by validation where an action has two
+    clips or more, else 6; ``n_sigma`` 4), on the structural random walk; with ``limits`` (a margin in rad)
+    also the joint limits of :func:`learned_limits_setup`. Then ``Tracker(..., dynamics=bank, **options)``:
+    ``track --action walk.npz --action run.npz`` with a user's models of the actions. Learned once per
+    performer and rate; their time is not the tracker's. ``track_options``: as :func:`tracker_setup`'s
+    (``{"init": "auto"}``: without the ground truth)."""
+
+    def setup(seq_dir: Path, skeleton: Skeleton, *, n_particles: int = 500, **_) -> Tracker:
+        from priors.factories import bank
+        from torchpf.sequence import read_sequence
+        from training.fit import ActionModelFitter
+
+        fps = _sequence_fps(seq_dir)
+        _, others = _other_performers(seq_dir)
+        key = (tuple(others), skeleton.source, fps)
+        if key not in _ACTIONS:
+            by_action: dict[str, list[str]] = {}
+            for c, r in others.items():
+                by_action.setdefault(r["description"], []).append(c)
+            _ACTIONS[key] = [
+                ActionModelFitter(
+                    n_components=components if len(clips) > 1 else 6,
+                    n_sigma=4.0,
+                    action=action.split("/")[0],
+                    fps=fps,
+                )
+                .fit(_mocap(clips, skeleton))
+                .model_
+                for action, clips in sorted(by_action.items(), key=lambda kv: -len(kv[1]))
+            ]
+        if limits is not None:
+            skeleton = _learned_limits(seq_dir, skeleton, limits)
+        dynamics = bank(skeleton, models=_ACTIONS[key], fps=fps)
+        cameras = read_sequence(seq_dir).cameras
+        return _tracker(seq_dir, skeleton, cameras, n_particles, dynamics=dynamics, **options)
+
+    setup.__doc__ = f"a bank of action models from the other performers' clips (limits {limits}), {options}"
+    setup.track_options = dict(track_options or {})
     return setup
 
 
@@ -950,6 +1018,10 @@ FOREIGN_SETUPS: dict[str, Callable[..., Any]] = {
     # the defaults on the skeleton with joint limits learned from the other performers' clips (fit-limits)
     "learned_limits": learned_limits_setup(),
     "learned_limits_action": learned_limits_setup(same_action=True),  # ... of the clip's action only
+    # the defaults with a bank of walk and run models learned from the other performers' clips (issue 12)
+    "action_bank": action_bank_setup(),
+    "action_bank_limits": action_bank_setup(limits=0.15),
+    "action_bank_limits_auto": action_bank_setup(limits=0.15, track_options={"init": "auto"}),  # no truth
     "calibrated_bidir_partitioned": calibrated_setup(**_BIDIR, filter="partitioned"),
     "calibrated_bidir_sir": calibrated_setup(**_BIDIR, filter="sir"),
     "calibrated_bidir_apf": calibrated_setup(**_BIDIR, filter="apf"),

@@ -14,6 +14,9 @@ so the rows are the per-frame step) and, in one process, the script times per fr
   frames); ``hybrid, no smoothing``: the filter alone (``smooth=False``); ``hybrid, no recovery``: without
   the lost-track detector (its periodic visual hull); ``hybrid, no limb swaps``: without the swapped
   candidates (``filter_options={"swaps": ()}``);
+* ``bank``: the hybrid with a bank of walk and run models learned from the other performers' CMU clips
+  (``python -m benchmarks.evaluate --setups action_bank``), and with their joint limits too
+  (``action_bank_limits``): what a learned prior costs per frame (the models' fit outside the timing);
 * ``refine``: :class:`~torchpf.refine.Refiner` alone (the hybrid's default: 20 steps, ``K = 4`` poses near
   the truth; ``--refine-steps 10,15`` adds rows with other step counts, for the hybrid too, at the same
   budget) on each frame's fresh observation (its per-frame caches, the despeckled masks and distance
@@ -133,6 +136,12 @@ def measure(
             rows[f"hybrid, {steps} steps"] = _track_row(
                 tracker(filter="hybrid", **options), seq.path, T, warmup
             )
+    if "bank" in paths:  # a learned prior (issue 12's noisy goal): the bank, then the bank with limits
+        from benchmarks.evaluate import action_bank_setup
+
+        for name, limits in (("hybrid, action bank", None), ("hybrid, action bank + limits", 0.15)):
+            made = action_bank_setup(limits=limits)(seq.path, skel, n_particles=particles)
+            rows[name] = _track_row(made, seq.path, T, warmup)
     g = torch.Generator().manual_seed(0)
     spread = torch.where(skel.dof_revolute, 0.05, 0.02).float()
     for steps in (20, *refine_steps) if "refine" in paths else ():
@@ -199,7 +208,7 @@ def main(argv=None) -> int:
     p.add_argument("--clip", default="07_01", help="CMU clip stem (clean masks)")
     p.add_argument("--frames", type=int, default=60, help="frames of the clip before resampling to 30 fps")
     p.add_argument(
-        "--paths", default="apf,hybrid,refine,cues", help="comma list of apf, hybrid, refine, cues"
+        "--paths", default="apf,hybrid,refine,cues", help="comma list of apf, hybrid, bank, refine, cues"
     )
     p.add_argument("--repeat", type=int, default=3, help="timed evaluations per frame (cues)")
     p.add_argument(
@@ -218,7 +227,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     torch.set_num_threads(args.threads)
     paths = {s.strip() for s in args.paths.split(",") if s.strip()}
-    unknown = paths - {"apf", "hybrid", "refine", "cues"}
+    unknown = paths - {"apf", "hybrid", "bank", "refine", "cues"}
     if unknown:
         p.error(f"unknown path(s) {sorted(unknown)}")
     if args.device != "cpu":

@@ -1,7 +1,7 @@
 """Command line: ``python -m torchpf track`` and ``python -m torchpf evaluate``.
 
-    python -m torchpf track SEQ_DIR --skeleton S.urdf [--action walk.npz] --filter apf --particles 500 \\
-        --out track.csv [--init auto|truth|POSE.csv] [--fps F]
+    python -m torchpf track SEQ_DIR --skeleton S.urdf [--action walk.npz [--action run.npz]] --filter apf \\
+        --particles 500 --out track.csv [--init auto|truth|POSE.csv] [--fps F]
     python -m torchpf evaluate track.csv [run2.csv ...] --truth truth.csv --skeleton S.urdf
     python -m torchpf calibrate SEQ_DIR --skeleton S.urdf --out FITTED.urdf [--frames K] \\
         [--init auto|truth|POSE.csv] [--outline-offsets PX] [--radius-sigma SIGMA]
@@ -54,7 +54,12 @@ def _parser() -> argparse.ArgumentParser:
     tr.add_argument("--skeleton", required=True, help="URDF of the tracked body")
     tr.add_argument("--out", required=True, help="output mocap CSV")
     tr.add_argument("--config", help="YAML with Tracker keywords (command-line options override it)")
-    tr.add_argument("--action", help="action model (.npz) for the action-constrained prior (Rius)")
+    tr.add_argument(
+        "--action",
+        action="append",
+        help="action model (.npz of 'python -m training fit') for the action-constrained prior (Rius); "
+        "repeat it for a bank of actions (e.g. a walk and a run), the action then a state of each particle",
+    )
     tr.add_argument("--name-map", help="YAML 'model DOF: skeleton DOF' names, where the skeleton's differ")
     tr.add_argument(
         "--dynamics",
@@ -320,10 +325,12 @@ def _track(args) -> int:
         kwargs.pop("skeleton", None)
         _check_config_keys(kwargs, args.config)
     if args.action:
-        kwargs["dynamics"] = args.dynamics or "action"
+        models = [_require_file(a, "action model") for a in args.action]
+        bank = len(models) > 1
+        kwargs["dynamics"] = args.dynamics or ("bank" if bank else "action")
         kwargs["dynamics_options"] = {
             **kwargs.get("dynamics_options", {}),
-            "model": _require_file(args.action, "action model"),
+            **({"models": models} if bank else {"model": models[0]}),
         }
         if args.name_map:
             kwargs["dynamics_options"]["name_map"] = _require_file(args.name_map, "name map")
@@ -395,6 +402,17 @@ def _track(args) -> int:
         print(
             f"action prior: accepted {100 * float(accepted.float().mean()):.0f}% of the particles; fell back "
             f"to its plain dynamics on {int(fell.sum())} of {fell.numel()} frames"
+        )
+    names = getattr(tracker.dynamics, "actions", None)
+    if "action_posterior" in result.stats and names:  # a bank of actions: which one, frame by frame
+        label = result.stats["action_posterior"].argmax(-1)
+        print(
+            "actions: "
+            + "; ".join(
+                f"{name} on frames {format_frames((label == a).nonzero().flatten().tolist())}"
+                for a, name in enumerate(names)
+                if bool((label == a).any())
+            )
         )
     if n_failed or bool(result.recovered.any()):
         failed, recovered = (

@@ -253,3 +253,24 @@ def test_learned_limits_setup_leaves_the_performer_out(tmp_path):
         narrow = limited.posture_dofs & (limited.upper - limited.lower < 6)
         inside = (wrapped >= limited.lower - 1e-6) & (wrapped <= limited.upper + 1e-6)
         assert bool(inside[:, narrow].all()), clip
+
+
+@needs_cmu
+def test_action_bank_setup_learns_each_action_from_the_other_performers(tmp_path):
+    """`--setups action_bank`: a walk and a run model fitted on the other performers' clips only; the bank
+    the tracker predicts with tells their walks from their runs (the responsibilities of each frame)."""
+    from benchmarks import evaluate as ev
+    from priors.bank import ActionBank
+    from training.mocap import bvh_motion
+
+    seq = foreign.build_sequence(CMU / "16_46.bvh", tmp_path / "seq", defects="clean", frames=3)
+    skel = Skeleton.from_urdf(str(seq.skeleton_path))
+    tracker = ev.FOREIGN_SETUPS["action_bank"](seq.path, skel, n_particles=30)
+    bank = tracker.dynamics
+    assert isinstance(bank, ActionBank) and bank.actions == ["walk", "run"]
+    ((clips, _, fps),) = [k for k in ev._ACTIONS if k[1] == skel.source]
+    assert fps == 30.0 and not any(c.startswith("16_") for c in clips) and {"35_24", "07_01"} <= set(clips)
+    for clip, action in (("07_01", 0), ("35_24", 1)):
+        angles = bvh_motion(CMU / f"{clip}.bvh", dof_names=skel.dof_names).angles[1::4]
+        label = bank.init_extras(angles.to(torch.float64))["action_prob"].argmax(-1)
+        assert (label == action).float().mean() > 0.9, clip

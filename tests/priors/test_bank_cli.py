@@ -1,0 +1,69 @@
+"""A bank of saved action models by name (``dynamics="bank"``) and from ``track --action A --action B``."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from priors.bank import ActionBank
+from priors.factories import bank
+from torchpf import Skeleton
+from torchpf.__main__ import main
+from torchpf.assets import path
+from torchpf.camera import camera_ring
+from torchpf.distributions import make_dynamics
+from torchpf.sequence import write_sequence
+from torchpf.synth import synthesize
+from training.fit import ActionModelFitter
+from training.synthetic import generate
+
+HUMAN = str(path("human.urdf"))
+
+
+@pytest.fixture(scope="module")
+def saved_models(tmp_path_factory):
+    """A walk and a wave model fitted on the generator's motion, saved, and a walk sequence to track."""
+    skel = Skeleton.from_urdf(HUMAN)
+    root = tmp_path_factory.mktemp("bank")
+    for action in ("walk", "wave"):
+        clips = [generate(action, 60, 15.0, seed=k) for k in range(2)]
+        fitter = ActionModelFitter(n_components=3, action=action, fps=15.0)
+        fitter.fit(clips, skeleton=skel).model_.save(root / f"{action}.npz")
+    cams = camera_ring(2, radius=4.0, width=64, height_px=48, target=(0.0, 0.0, 1.0))
+    write_sequence(root / "seq", synthesize(skel, generate("walk", 6, 15.0, seed=7).angles, cams, fps=15.0))
+    return skel, root
+
+
+def test_the_bank_factory_loads_each_model_in_the_skeleton_order(saved_models):
+    skel, root = saved_models
+    dyn = make_dynamics(
+        "bank", skel, fps=15.0, models=[root / "walk.npz", str(root / "wave.npz")], switch=0.1
+    )
+    assert isinstance(dyn, ActionBank) and dyn.actions == ["walk", "wave"]
+    assert all(c.model.dof_names == skel.dof_names for c in dyn.constrained)
+    torch.testing.assert_close(dyn.transition, torch.tensor([[0.9, 0.1], [0.1, 0.9]], dtype=torch.float64))
+    # a walk's postures belong to the walk model: the responsibilities of the bank say so
+    walk = generate("walk", 20, 15.0, seed=11).angles.to(torch.float64)
+    prob = dyn.init_extras(walk)["action_prob"]
+    assert (prob.argmax(-1) == 0).float().mean() > 0.9
+    with pytest.raises(ValueError, match="at least one action model"):
+        bank(skel, models=[], fps=15.0)
+    with pytest.raises(FileNotFoundError, match=r"nope\.npz"):
+        bank(skel, models=[root / "walk.npz", root / "nope.npz"], fps=15.0)
+
+
+def test_track_cli_makes_a_bank_of_repeated_actions_and_names_the_action_per_frame(
+    saved_models, tmp_path, capsys
+):
+    _, root = saved_models
+    track = [
+        "track", str(root / "seq"), "--skeleton", HUMAN, "--action", str(root / "walk.npz"),
+        "--action", str(root / "wave.npz"), "--filter", "sir", "--particles", "60", "--no-progress",
+    ]  # fmt: skip
+    assert main([*track, "--out", str(tmp_path / "a.csv")]) == 0
+    out = capsys.readouterr().out
+    assert "tracked 6 frames" in out and (tmp_path / "a.csv").exists()
+    assert "actions: walk on frames 0-5" in out
+    missing = [str(tmp_path / "missing.npz") if t.endswith("wave.npz") else t for t in track]
+    assert main([*missing, "--out", str(tmp_path / "b.csv")]) == 2
+    assert "missing.npz" in capsys.readouterr().err and not (tmp_path / "b.csv").exists()
