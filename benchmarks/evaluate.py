@@ -887,8 +887,8 @@ _LIMITS: dict[tuple[tuple[str, ...], str], tuple[torch.Tensor, torch.Tensor]] = 
 _ACTIONS: dict[tuple[tuple[str, ...], str, float], list] = {}
 
 
-def _other_performers(seq_dir: Path, same_action: bool = False) -> tuple[str, dict[str, dict[str, str]]]:
-    """The rendered clip's stem and the ``INDEX.tsv`` rows of every clip of ``CMU_DIR`` by *another*
+def _other_performers(seq_dir: Path, same_action: bool = False) -> dict[str, dict[str, str]]:
+    """The ``INDEX.tsv`` rows (by clip stem) of every clip of ``CMU_DIR`` by *another*
     performer (with ``same_action`` only those of this clip's action): the user's mocap in a leave one
     performer out evaluation."""
     clip = Path(json.loads((Path(seq_dir) / "render.json").read_text())["clip"]).stem
@@ -903,7 +903,7 @@ def _other_performers(seq_dir: Path, same_action: bool = False) -> tuple[str, di
     }
     if not others:
         raise ValueError(f"no clip of another performer than {me['subject']} in {CMU_DIR}/INDEX.tsv")
-    return clip, others
+    return others
 
 
 def _mocap(clips, skeleton: Skeleton) -> list:
@@ -918,7 +918,7 @@ def _learned_limits(seq_dir: Path, skeleton: Skeleton, margin: float, same_actio
     clips (what ``python -m training fit-limits`` writes); learned once per set of clips."""
     from training.limits import fit_limits
 
-    _, others = _other_performers(seq_dir, same_action)
+    others = _other_performers(seq_dir, same_action)
     key = (tuple(others), skeleton.source)
     if key not in _LIMITS:
         _LIMITS[key] = fit_limits(_mocap(others, skeleton), skeleton, margin=margin)[:2]
@@ -968,7 +968,7 @@ def action_bank_setup(
         from training.fit import ActionModelFitter
 
         fps = _sequence_fps(seq_dir)
-        _, others = _other_performers(seq_dir)
+        others = _other_performers(seq_dir)
         key = (tuple(others), skeleton.source, fps)
         if key not in _ACTIONS:
             by_action: dict[str, list[str]] = {}

@@ -393,7 +393,8 @@ def _track(args) -> int:
         print(
             f"note: {len(free)} joint rotations of {args.skeleton} have no limits (BVH has none), so the "
             "track may bend a knee sideways or cross the legs; 'python -m training fit-limits' learns "
-            "limits from mocap of the action (foreign renders, noisy masks: 84 -> 62 mm, BENCHMARKS.md)"
+            "limits from mocap of the action (foreign renders, noisy masks: 67 -> 51 mm; with walk and run "
+            "models of 'python -m training fit' as --action walk.npz --action run.npz, 47; BENCHMARKS.md)"
         )
     if blind:
         print(f"frames without evidence (no usable mask, point or keypoint): {format_frames(blind)}")
