@@ -884,7 +884,7 @@ def auto_setup(**options: Any) -> Callable[..., Any]:
 
 
 _LIMITS: dict[tuple[tuple[str, ...], str], tuple[torch.Tensor, torch.Tensor]] = {}
-_ACTIONS: dict[tuple[tuple[str, ...], str, float], list] = {}
+_ACTIONS: dict[tuple[tuple[str, ...], str, float, bool], list] = {}
 
 
 def _other_performers(seq_dir: Path, same_action: bool = False) -> dict[str, dict[str, str]]:
@@ -950,17 +950,19 @@ def learned_limits_setup(
 def action_bank_setup(
     limits: float | None = None,
     components: int | str = "auto",
+    single_clip: bool = True,
     track_options: Mapping[str, Any] | None = None,
     **options: Any,
 ) -> Callable[..., Tracker]:
     """A setup that tracks with a bank of action models (:class:`priors.bank.ActionBank`, the ``bank``
     prior) learned from the *other performers'* clips, one model per action of ``INDEX.tsv`` (``python -m
     training fit --action A`` on each action's clips: ``components`` by validation where an action has two
-    clips or more, else 6; ``n_sigma`` 4), on the structural random walk; with ``limits`` (a margin in rad)
-    also the joint limits of :func:`learned_limits_setup`. Then ``Tracker(..., dynamics=bank, **options)``:
-    ``track --action walk.npz --action run.npz`` with a user's models of the actions. Learned once per
-    performer and rate; their time is not the tracker's. ``track_options``: as :func:`tracker_setup`'s
-    (``{"init": "auto"}``: without the ground truth)."""
+    clips or more, else 6, or with ``single_clip=False`` no model of that action, as ``training fit``'s
+    validation refuses one clip; ``n_sigma`` 4), on the structural random walk; with ``limits`` (a margin
+    in rad) also the joint limits of :func:`learned_limits_setup`. Then ``Tracker(..., dynamics=bank,
+    **options)``: ``track --action walk.npz --action run.npz`` with a user's models of the actions. Learned
+    once per performer and rate; their time is not the tracker's. ``track_options``: as
+    :func:`tracker_setup`'s (``{"init": "auto"}``: without the ground truth)."""
 
     def setup(seq_dir: Path, skeleton: Skeleton, *, n_particles: int = 500, **_) -> Tracker:
         from priors.factories import bank
@@ -969,7 +971,7 @@ def action_bank_setup(
 
         fps = _sequence_fps(seq_dir)
         others = _other_performers(seq_dir)
-        key = (tuple(others), skeleton.source, fps)
+        key = (tuple(others), skeleton.source, fps, single_clip)
         if key not in _ACTIONS:
             by_action: dict[str, list[str]] = {}
             for c, r in others.items():
@@ -984,6 +986,7 @@ def action_bank_setup(
                 .fit(_mocap(clips, skeleton))
                 .model_
                 for action, clips in sorted(by_action.items(), key=lambda kv: -len(kv[1]))
+                if single_clip or len(clips) > 1
             ]
         if limits is not None:
             skeleton = _learned_limits(seq_dir, skeleton, limits)
@@ -1022,6 +1025,8 @@ FOREIGN_SETUPS: dict[str, Callable[..., Any]] = {
     "action_bank": action_bank_setup(),
     "action_bank_limits": action_bank_setup(limits=0.15),
     "action_bank_limits_auto": action_bank_setup(limits=0.15, track_options={"init": "auto"}),  # no truth
+    # ... with no model of an action that only one clip of the other performers shows (35's runs)
+    "action_bank_limits_validated": action_bank_setup(limits=0.15, single_clip=False),
     "calibrated_bidir_partitioned": calibrated_setup(**_BIDIR, filter="partitioned"),
     "calibrated_bidir_sir": calibrated_setup(**_BIDIR, filter="sir"),
     "calibrated_bidir_apf": calibrated_setup(**_BIDIR, filter="apf"),

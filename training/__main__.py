@@ -161,6 +161,14 @@ def _fit(args: argparse.Namespace) -> int:
             motion = motion[args.skip_first :]
         motions.append(motion)
     negatives = [load_csv(p, dof_names=dof_names)[args.skip_first :] for p in args.negatives or []]
+    if args.components == "auto" and len(motions) < 2:
+        # the validation leaves one performance out; say so in the command's own terms
+        raise ValueError(
+            f"--components auto (the default) chooses the aSpace by leaving one performance out, and "
+            f"{args.files[0]} is the only one: give another performer's clip of the action, or --components "
+            "D (a model of one performance may not fit another performer's style: BENCHMARKS.md, "
+            "'A learned prior')"
+        )
     fitter = ActionModelFitter(
         negatives=negatives or None,
         n_components=args.components,

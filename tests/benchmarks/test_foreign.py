@@ -268,7 +268,7 @@ def test_action_bank_setup_learns_each_action_from_the_other_performers(tmp_path
     tracker = ev.FOREIGN_SETUPS["action_bank"](seq.path, skel, n_particles=30)
     bank = tracker.dynamics
     assert isinstance(bank, ActionBank) and bank.actions == ["walk", "run"]
-    ((clips, _, fps),) = [k for k in ev._ACTIONS if k[1] == skel.source]
+    ((clips, _, fps, _),) = [k for k in ev._ACTIONS if k[1] == skel.source]
     assert fps == 30.0 and not any(c.startswith("16_") for c in clips) and {"35_24", "07_01"} <= set(clips)
     for clip, action in (("07_01", 0), ("35_24", 1)):
         angles = bvh_motion(CMU / f"{clip}.bvh", dof_names=skel.dof_names).angles[1::4]

@@ -90,6 +90,12 @@ def test_fit_errors_are_one_line_with_status_2(walk_csvs, tmp_path, capsys):
     assert e.value.code == 2 and "--components" in _one_error_line(capsys)
     assert not (tmp_path / "m.npz").exists()
 
+    # one performance cannot be validated: the error says which file and what to give instead
+    assert main(base + walk_csvs[:1]) == 2
+    line = _one_error_line(capsys)
+    assert "--components D" in line and walk_csvs[0] in line and not (tmp_path / "m.npz").exists()
+    assert main(base + ["--components", "3", *walk_csvs[:1]]) == 0 and (tmp_path / "m.npz").exists()
+
 
 def test_inspect_errors_are_one_line_with_status_2(tmp_path, capsys):
     bad = tmp_path / "bad.npz"
