@@ -156,8 +156,10 @@ def bank(
     Measured on the foreign renders of 11 CMU clips, walk and run models learned from the *other*
     performers' clips (BENCHMARKS.md, "A learned prior"): noisy masks 56.5 mm against 66.9 for the random
     walk (two draws); with joint limits learned from the same clips, 47.1 against 67.5 (ten draws), clean
-    25.2 against 27.1. A model learned from one clip of one performer can mislead: the runs of performer
-    35, with a run model from one run of performer 16, failed 19 % of their clean frames (none without).
+    25.2 against 27.1. A model learned from one clip of one performer can mislead: with a run model from
+    one run of performer 16, 35_24 failed 19 % of its clean frames (none without a bank); without that
+    model, 46.9 mm noisy and 23.6 mm clean with 0.5 % of frames failed. Give each action two performances
+    or more (``training fit`` refuses one unless ``--components`` is given).
     """
     if isinstance(models, str | os.PathLike | ActionModel):
         models = [models]
