@@ -32,9 +32,10 @@ e.g. at another commit::
     git stash; python -m benchmarks.step_speed --save out/before.json; git stash pop
     python -m benchmarks.step_speed --baseline out/before.json
 
-``--device cuda --paths apf,hybrid`` runs the trackers on a GPU (wall clock: a GPU's work is asynchronous);
-``--particles`` sets the evaluations per frame; ``--cmu-dir`` finds the clips where ``../shared`` is not
-beside the checkout (a GPU machine). The rendering and the body fit come first: give a GPU run a minute.
+``--device cuda --paths apf,hybrid,bank`` runs the trackers on a GPU (wall clock: a GPU's work is
+asynchronous); ``--particles`` sets the evaluations per frame; ``--cmu-dir`` finds the clips where
+``../shared`` is not beside the checkout (a GPU machine; the bank's models read ``../shared`` itself). The
+rendering and the body fit come first: give a GPU run a minute.
 """
 
 from __future__ import annotations
@@ -140,7 +141,7 @@ def measure(
         from benchmarks.evaluate import action_bank_setup
 
         for name, limits in (("hybrid, action bank", None), ("hybrid, action bank + limits", 0.15)):
-            made = action_bank_setup(limits=limits)(seq.path, skel, n_particles=particles)
+            made = action_bank_setup(limits=limits, device=device)(seq.path, skel, n_particles=particles)
             rows[name] = _track_row(made, seq.path, T, warmup)
     g = torch.Generator().manual_seed(0)
     spread = torch.where(skel.dof_revolute, 0.05, 0.02).float()
@@ -219,7 +220,9 @@ def main(argv=None) -> int:
     p.add_argument("--work", default="out/step_speed", help="where the sequence directory is written")
     p.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
     p.add_argument("--clock", choices=["cpu", "wall"], help="default: cpu on the CPU, wall on a GPU")
-    p.add_argument("--device", default="cpu", help="where the trackers run (cuda: the apf and hybrid rows)")
+    p.add_argument(
+        "--device", default="cpu", help="where the trackers run (cuda: the apf, hybrid and bank rows)"
+    )
     p.add_argument("--particles", type=int, default=500, help="likelihood evaluations per frame")
     p.add_argument("--cmu-dir", default=str(CMU_DIR), help="folder of the CMU BVH clips")
     p.add_argument("--save", help="write the figures to this JSON file")
@@ -231,8 +234,10 @@ def main(argv=None) -> int:
     if unknown:
         p.error(f"unknown path(s) {sorted(unknown)}")
     if args.device != "cpu":
-        if not paths <= {"apf", "hybrid"}:
-            p.error(f"--device {args.device} times the apf and hybrid rows only (--paths apf,hybrid)")
+        if not paths <= {"apf", "hybrid", "bank"}:
+            p.error(
+                f"--device {args.device} times the apf, hybrid and bank rows only (--paths apf,hybrid,bank)"
+            )
         if args.device.startswith("cuda") and not torch.cuda.is_available():
             p.error(f"--device {args.device}: no CUDA device is available")
     # a GPU's work is asynchronous and runs beside the CPU: only wall time measures it

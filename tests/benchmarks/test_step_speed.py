@@ -10,7 +10,7 @@ def test_only_the_tracking_rows_run_off_the_cpu(capsys):
     with pytest.raises(SystemExit) as exc:
         step_speed.main(["--device", "cuda", "--paths", "hybrid,refine"])
     assert exc.value.code == 2
-    assert "--device cuda times the apf and hybrid rows only" in capsys.readouterr().err
+    assert "--device cuda times the apf, hybrid and bank rows only" in capsys.readouterr().err
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="checks the error where no CUDA device is present")

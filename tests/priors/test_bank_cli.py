@@ -67,3 +67,27 @@ def test_track_cli_makes_a_bank_of_repeated_actions_and_names_the_action_per_fra
     missing = [str(tmp_path / "missing.npz") if t.endswith("wave.npz") else t for t in track]
     assert main([*missing, "--out", str(tmp_path / "b.csv")]) == 2
     assert "missing.npz" in capsys.readouterr().err and not (tmp_path / "b.csv").exists()
+
+
+def test_a_tracker_with_the_bank_runs_on_the_particles_device(saved_models, device):
+    """The default (hybrid) tracker with ``dynamics="bank"`` tracks on ``device``: the models' buffers and
+    the action state follow the particles (one device rule); the walk is recognised on every frame."""
+    from torchpf.sequence import read_sequence
+    from torchpf.tracker import Tracker
+
+    skel, root = saved_models
+    data = read_sequence(root / "seq")
+    tracker = Tracker(
+        skel,
+        data.cameras,
+        n_particles=60,
+        fps=15.0,
+        progress=False,
+        device=device,
+        dynamics="bank",
+        dynamics_options={"models": [root / "walk.npz", root / "wave.npz"]},
+    )
+    result = tracker.track(root / "seq", init=data.truth_in(skel.dof_names)[0], seed=0)
+    assert torch.isfinite(result.angles).all() and result.angles.shape[0] == 6
+    posterior = result.stats["action_posterior"]
+    assert posterior.shape == (6, 2) and bool((posterior.argmax(-1) == 0).all())

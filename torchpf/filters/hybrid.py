@@ -227,7 +227,13 @@ class HybridParticleFilter(AnnealedParticleFilter):
             n = 1 + len(swaps)
             xk = torch.cat([mean, *(swap(mean) for swap in swaps), xk], -2)
             prev = torch.cat([mean_prev.expand(*mean_prev.shape[:-2], n, -1), prev], -2)
-            extras_k = {key: torch.cat([v.narrow(dim, 0, 1)] * n + [v], dim) for key, v in extras_k.items()}
+            # the mean and its swaps carry the extras (an action's state) of the particle of highest weight;
+            # with a small budget K may be 0 and only those candidates are refined
+            best = log_w.argmax(dim=-1, keepdim=True)
+            extras_k = {
+                key: torch.cat([gather_particles(extras_prev[key], best)] * n + [v], dim)
+                for key, v in extras_k.items()
+            }
         log_prior = None
         if self.refine_prior:
 
