@@ -26,6 +26,7 @@ Example::
 
 from __future__ import annotations
 
+import inspect
 import math
 from collections.abc import Mapping
 
@@ -227,5 +228,24 @@ DYNAMICS: Registry = Registry("dynamics", entry_point_group="torchpf.dynamics")
 
 def make_dynamics(name: str, skeleton, **options) -> Dynamics:
     """Build the motion prior registered as ``name`` for ``skeleton``: ``DYNAMICS.get(name)(skeleton,
-    **options)`` (an unknown name raises a ``ValueError`` listing the registered ones)."""
-    return DYNAMICS.get(name)(skeleton, **options)
+    **options)`` (an unknown name raises a ``ValueError`` listing the registered ones; options the factory
+    does not take, or a required one missing, a ``TypeError`` naming the prior and what it takes)."""
+    factory = DYNAMICS.get(name)
+    try:
+        signature = inspect.signature(factory)
+    except (TypeError, ValueError):  # a builtin or C callable: let the call itself complain
+        signature = None
+    if signature is not None:
+        try:
+            signature.bind(skeleton, **options)
+        except TypeError as e:
+            takes = [
+                f"{p.name}{'' if p.default is inspect.Parameter.empty else '=...'}"
+                for p in list(signature.parameters.values())[1:]
+                if p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD)
+            ]
+            raise TypeError(
+                f"dynamics {name!r}: {e} (given {sorted(options) or 'no options'}; "
+                f"it takes {', '.join(takes)})"
+            ) from None
+    return factory(skeleton, **options)

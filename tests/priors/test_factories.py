@@ -34,3 +34,26 @@ def test_entry_points_build_working_dynamics(f22):
     )
     with pytest.raises(ValueError, match="unknown dynamics"):
         make_dynamics("teleport", f22)
+
+
+def test_a_prior_given_the_wrong_options_names_itself_and_what_it_takes(f22):
+    """``dynamics="action", dynamics_options={"path": ...}`` (the key is ``model``): a ``TypeError`` that
+    names the prior, the options given and the ones it takes, not the factory's bare signature error."""
+    with pytest.raises(
+        TypeError, match=r"dynamics 'action': missing .*'model'.*given \['path'\].*takes model"
+    ):
+        make_dynamics("action", f22, path="walk.npz")
+    with pytest.raises(TypeError, match=r"dynamics 'bank': missing .*'models'.*given \['model'\]"):
+        make_dynamics("bank", f22, model=["walk.npz"])
+
+
+def test_quasi_random_filters_refuse_a_prior_without_a_noise_map_and_say_what_to_use(f22):
+    """QRS sampling maps low-discrepancy noise through the prior; an action bank has no such map (its action
+    switch is discrete), and the error names the prior and the filters that work with it."""
+    from priors.bank import ActionBank
+    from torchpf.filters import ParticleFilter
+
+    bank = ActionBank.__new__(ActionBank)  # only its type matters: the check comes before any use
+    torch.nn.Module.__init__(bank)
+    with pytest.raises(ValueError, match=r"ActionBank has none: use the Monte Carlo filters \('sir'"):
+        ParticleFilter(bank, lambda x, obs: x.sum(-1), n_particles=8, sampling="qrs")

@@ -107,7 +107,11 @@ class ParticleFilter(nn.Module):
                 )
         dynamics = as_dynamics(dynamics)
         if sampling == "qrs" and not dynamics.has_noise_map():
-            raise ValueError("sampling='qrs' needs dynamics.sample_from_noise(x, eps)")
+            raise ValueError(
+                f"sampling='qrs' (filters 'qrs', 'partitioned_qrs') needs a motion prior that maps noise to "
+                f"a sample (dynamics.sample_from_noise(x, eps)); {type(dynamics).__name__} has none: use the "
+                f"Monte Carlo filters ('sir', 'partitioned', 'apf', 'hybrid') with it"
+            )
         self.dynamics = dynamics
         self.likelihood = likelihood
         self.proposal = proposal
