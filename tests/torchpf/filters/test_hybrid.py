@@ -5,6 +5,7 @@ moves on a linear-Gaussian model (a known map), so every expected value is compu
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -222,3 +223,44 @@ def test_refinement_plan_fits_its_share_of_the_budget(budget):
         assert bigger[0] * (3 * bigger[1] + 1) + 2 > 0.5 * budget
     if budget >= 500:
         assert (k, steps) == (4, 20)  # the defaults fit (246 evaluations)
+
+
+def test_the_default_trackers_step_keeps_a_batch_of_sequences_independent():
+    """``track``'s filter (the hybrid: APF layers on silhouette x dual silhouette, then refinement of the
+    mean, its limb swaps and the best particles on the distance cue) on B = 2 sequences at once ((2, N, D)
+    particles, (2, V, H, W) masks): sequence 0's step does not change when sequence 1's masks do (nothing is
+    normalised, ranked or refined across the batch), and each sequence's estimate goes to its own pose."""
+    from torchpf import Skeleton
+    from torchpf.assets import path
+    from torchpf.camera import camera_ring
+    from torchpf.observations import Frame, Silhouettes
+    from torchpf.synth import synthesize
+    from torchpf.tracker import Tracker
+
+    skel = Skeleton.from_urdf(str(path("human.urdf")))
+    names = skel.dof_names
+    a = torch.zeros(len(names), dtype=F64)
+    a[names.index("Hips_Zposition")] = 1.0
+    b, c = a.clone(), a.clone()
+    b[names.index("LeftArm_Yrotation")], b[names.index("Hips_Xposition")] = 0.8, 0.15
+    c[names.index("RightUpLeg_Xrotation")] = -0.5
+    rig = camera_ring(3, radius=4.0, height=1.5, target=(0, 0, 0.8), width=80, height_px=60)
+    masks = torch.as_tensor(np.asarray(synthesize(skel, torch.stack([a, b, c]), rig).masks))  # (3, V, H, W)
+    tracker = Tracker(skel, rig, n_particles=200, fps=15.0, progress=False)
+    filt = tracker.filter
+    g = torch.Generator().manual_seed(0)
+    noise = 0.03 * torch.randn(2, filt.n_particles, len(names), generator=g, dtype=F64)
+    x0 = (torch.stack([a, b])[:, None] + noise).float()
+
+    def step(second):
+        frame = Frame(silhouettes=Silhouettes(torch.stack([masks[0], masks[second]])))
+        return filt.step(filt.init(x0), frame, torch.Generator().manual_seed(1))
+
+    one, other = step(1), step(2)
+    torch.testing.assert_close(one.particles[0], other.particles[0])
+    torch.testing.assert_close(one.log_weights[0], other.log_weights[0])
+    est = one.info["estimate"].double()  # (2, D)
+    fk = skel.fk(torch.stack([est[0], est[1], a, b]))
+    own = (fk[:2] - fk[2:]).norm(dim=-1).mean(-1)
+    swapped = (fk[:2] - fk[2:].flip(0)).norm(dim=-1).mean(-1)
+    assert torch.all(own < 0.5 * swapped), (own, swapped)
