@@ -398,6 +398,14 @@ class Tracker(nn.Module):
         self.dtype = dtype
         self.progress = progress
         self.filter = self._build_filter()
+        spent = self.filter.likelihood_evaluations
+        if spent is not None and spent > n_particles:  # one particle of this filter costs more than that
+            warnings.warn(
+                f"Tracker: n_particles={n_particles} likelihood evaluations per frame is less than one "
+                f"particle of filter {self.filter_name!r} costs; it runs {self.filter.n_particles} "
+                f"particle(s), {spent} evaluations per frame",
+                stacklevel=2,
+            )
         self.to(self.device)  # the modules follow the particles' device
 
     def to(self, *args, **kwargs) -> Tracker:

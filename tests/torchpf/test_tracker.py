@@ -1,5 +1,7 @@
 """Tracker: assembly by name, end-to-end tracking of a synthetic walk, sequence directories, configs."""
 
+import warnings
+
 import pytest
 import torch
 
@@ -146,6 +148,10 @@ def test_mcmc_and_wrapped_dynamics_budget(scene):
         filter_options={"n_moves": 2, "n_leapfrog": 5},
     )
     assert mcmc.filter.n_particles == 30  # 390 / (1 + 2 x 6)
+    # below one particle's cost the filter still runs one particle, and says what it spends
+    with pytest.warns(UserWarning, match=r"n_particles=6 .*filter 'mcmc'.* 1 particle\(s\), 13 evaluations"):
+        one = Tracker(skel, cams, dynamics=walk(), filter="mcmc", n_particles=6, progress=False)
+    assert one.filter.likelihood_evaluations == 13
 
     class Wrapper(torch.nn.Module):  # like ActionConstrained: the step std lives on the wrapped prior
         def __init__(self):
@@ -407,10 +413,16 @@ def test_hybrid_default_stays_within_a_small_budget(scene, budget):
     k, steps = tracker.filter.n_refine, tracker.filter.refiner.steps
     assert (k, steps) == HybridParticleFilter.plan_refinement(budget)
     assert tracker.filter.n_particles >= 1 and tracker.likelihood_evaluations <= budget
-    explicit = Tracker(
-        skel, cams, n_particles=budget, filter_options={"refine_options": {"steps": 3}}, progress=False
-    )
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        explicit = Tracker(
+            skel, cams, n_particles=budget, filter_options={"refine_options": {"steps": 3}}, progress=False
+        )
     assert explicit.filter.refiner.steps == 3 and explicit.filter.n_refine == 4  # the user's choice stands
+    # ... and where it costs more than the budget (4 poses x 3 steps at 30), the tracker says so
+    over = explicit.likelihood_evaluations > budget
+    assert over == any("less than one particle" in str(w.message) for w in caught)
+    assert over == (budget == 30)
 
 
 def test_an_initial_pose_outside_the_limits_is_warned_and_clamped(scene):
