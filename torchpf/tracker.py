@@ -399,11 +399,11 @@ class Tracker(nn.Module):
         self.progress = progress
         self.filter = self._build_filter()
         spent = self.filter.likelihood_evaluations
-        if spent is not None and spent > n_particles:  # one particle of this filter costs more than that
+        if spent is not None and spent > n_particles:  # the filter's smallest set costs more than that
             warnings.warn(
-                f"Tracker: n_particles={n_particles} likelihood evaluations per frame is less than one "
-                f"particle of filter {self.filter_name!r} costs; it runs {self.filter.n_particles} "
-                f"particle(s), {spent} evaluations per frame",
+                f"Tracker: filter {self.filter_name!r} spends {spent} likelihood evaluations per frame with "
+                f"{self.filter.n_particles} particle(s), more than n_particles={n_particles}: raise "
+                "n_particles, or lower what one particle costs (HMC moves, refinement steps)",
                 stacklevel=2,
             )
         self.to(self.device)  # the modules follow the particles' device

@@ -93,5 +93,5 @@ def test_every_filter_tracks_with_every_motion_prior(world, filter_name, dynamic
     # 6 evaluations per frame lose tracks, and the lost-track detector may flag them: flagged, not hidden
     assert result.failed.shape == (4,) and result.failed.dtype == torch.bool
     # the budget holds, or the tracker said why not (one HMC particle costs 13 evaluations)
-    below = any("less than one particle" in str(w.message) for w in caught)
+    below = any("more than n_particles" in str(w.message) for w in caught)
     assert result.likelihood_evaluations <= budget or below
