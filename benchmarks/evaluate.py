@@ -883,7 +883,7 @@ def auto_setup(**options: Any) -> Callable[..., Any]:
     return setup
 
 
-_LIMITS: dict[tuple[tuple[str, ...], str], tuple[torch.Tensor, torch.Tensor]] = {}
+_LIMITS: dict[tuple[tuple[str, ...], str, float], tuple[torch.Tensor, torch.Tensor]] = {}
 _ACTIONS: dict[tuple[tuple[str, ...], str, float, bool], list] = {}
 
 
@@ -913,13 +913,13 @@ def _mocap(clips, skeleton: Skeleton) -> list:
     return [bvh_motion(Path(CMU_DIR) / f"{c}.bvh", dof_names=skeleton.dof_names)[1:] for c in clips]
 
 
-def _learned_limits(seq_dir: Path, skeleton: Skeleton, margin: float, same_action: bool = False) -> Skeleton:
-    """``skeleton`` with the joint limits :func:`training.limits.fit_limits` learns from the other performers'
-    clips (what ``python -m training fit-limits`` writes); learned once per set of clips."""
+def _learned_limits(others: Mapping[str, Any], skeleton: Skeleton, margin: float) -> Skeleton:
+    """``skeleton`` with the joint limits :func:`training.limits.fit_limits` learns from the clips ``others``
+    (stems, e.g. :func:`_other_performers`' rows: what ``python -m training fit-limits`` writes); learned once
+    per set of clips and margin."""
     from training.limits import fit_limits
 
-    others = _other_performers(seq_dir, same_action)
-    key = (tuple(others), skeleton.source)
+    key = (tuple(others), skeleton.source, float(margin))
     if key not in _LIMITS:
         _LIMITS[key] = fit_limits(_mocap(others, skeleton), skeleton, margin=margin)[:2]
     return skeleton.with_limits(*_LIMITS[key])
@@ -939,7 +939,7 @@ def learned_limits_setup(
     def setup(seq_dir: Path, skeleton: Skeleton, *, n_particles: int = 500, **_) -> Tracker:
         from torchpf.sequence import read_sequence
 
-        limited = _learned_limits(seq_dir, skeleton, margin, same_action)
+        limited = _learned_limits(_other_performers(seq_dir, same_action), skeleton, margin)
         return _tracker(seq_dir, limited, read_sequence(seq_dir).cameras, n_particles, **options)
 
     which = " of the same action" if same_action else ""
@@ -989,7 +989,7 @@ def action_bank_setup(
                 if single_clip or len(clips) > 1
             ]
         if limits is not None:
-            skeleton = _learned_limits(seq_dir, skeleton, limits)
+            skeleton = _learned_limits(others, skeleton, limits)
         dynamics = bank(skeleton, models=_ACTIONS[key], fps=fps)
         cameras = read_sequence(seq_dir).cameras
         return _tracker(seq_dir, skeleton, cameras, n_particles, dynamics=dynamics, **options)

@@ -244,7 +244,8 @@ def test_learned_limits_setup_leaves_the_performer_out(tmp_path):
     assert len(skel.free_rotations()) > len(skel.dof_names) // 2  # a converted BVH: no limits
     tracker = ev.FOREIGN_SETUPS["learned_limits"](seq.path, skel, n_particles=30)
     limited = tracker.skeleton
-    ((clips, _),) = [k for k in ev._LIMITS if k[1] == skel.source]
+    ((clips, _, margin),) = [k for k in ev._LIMITS if k[1] == skel.source]
+    assert margin == 0.15
     assert clips and not any(c.startswith("16_") for c in clips) and "35_24" in clips
     assert len(limited.free_rotations()) < 8  # what crosses +-pi or flips in the hands' data
     for clip in ("07_01", "35_24"):

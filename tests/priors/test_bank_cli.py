@@ -7,31 +7,12 @@ import torch
 
 from priors.bank import ActionBank
 from priors.factories import bank
-from torchpf import Skeleton
 from torchpf.__main__ import main
 from torchpf.assets import path
-from torchpf.camera import camera_ring
 from torchpf.distributions import make_dynamics
-from torchpf.sequence import write_sequence
-from torchpf.synth import synthesize
-from training.fit import ActionModelFitter
 from training.synthetic import generate
 
 HUMAN = str(path("human.urdf"))
-
-
-@pytest.fixture(scope="module")
-def saved_models(tmp_path_factory):
-    """A walk and a wave model fitted on the generator's motion, saved, and a walk sequence to track."""
-    skel = Skeleton.from_urdf(HUMAN)
-    root = tmp_path_factory.mktemp("bank")
-    for action in ("walk", "wave"):
-        clips = [generate(action, 60, 15.0, seed=k) for k in range(2)]
-        fitter = ActionModelFitter(n_components=3, action=action, fps=15.0)
-        fitter.fit(clips, skeleton=skel).model_.save(root / f"{action}.npz")
-    cams = camera_ring(2, radius=4.0, width=64, height_px=48, target=(0.0, 0.0, 1.0))
-    write_sequence(root / "seq", synthesize(skel, generate("walk", 6, 15.0, seed=7).angles, cams, fps=15.0))
-    return skel, root
 
 
 def test_the_bank_factory_loads_each_model_in_the_skeleton_order(saved_models):

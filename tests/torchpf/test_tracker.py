@@ -213,8 +213,6 @@ def test_named_prior_gets_the_frame_rate(scene):
 def test_named_prior_without_a_rate_takes_the_sequences(scene):
     """fps=None: a sequence with times (15 Hz here) gets the prior built for its rate, the same track as
     fps=15 given; no warning about a missing rate. An explicit other rate is honoured."""
-    import warnings
-
     skel, cams, seq, angles = scene
 
     def run(**options):
@@ -429,8 +427,6 @@ def test_hybrid_default_stays_within_a_small_budget(scene, budget):
 def test_an_initial_pose_outside_the_limits_is_warned_and_clamped(scene):
     """Limits learned from other performers (fit-limits) may not hold a new one's first pose: the track
     starts from it clamped, and says so; a pose inside the limits says nothing."""
-    import warnings
-
     skel, cams, seq, angles = scene
     knee = skel.dof_names.index("LeftLeg_Xrotation")
     x0 = float(angles[0, knee])
