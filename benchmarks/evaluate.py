@@ -822,10 +822,14 @@ def tracker_setup(track_options: Mapping[str, Any] | None = None, **options: Any
 def setup_before(seq_dir: Path, skeleton: Skeleton, *, n_particles: int = 500, **_) -> Tracker:
     """The ``track`` defaults before issue 11, pinned: silhouette cue alone, APF (3 layers), the random walk
     with Fontmarty's Table 5 stds mapped by joint names (:func:`priors.table5.table5_sigma`, exactly), the
-    converted skeleton's own capsules; initial pose from ``truth.csv`` frame 0."""
+    converted skeleton's own capsules and no joint limits; initial pose from ``truth.csv`` frame 0."""
     stds = table5_sigma(skeleton, _sequence_fps(seq_dir))
     return tracker_setup(
-        likelihood="silhouette", filter="apf", dynamics="random_walk", dynamics_options={"stds": stds}
+        likelihood="silhouette",
+        filter="apf",
+        dynamics="random_walk",
+        dynamics_options={"stds": stds},
+        torso_limit=None,
     )(seq_dir, skeleton, n_particles=n_particles)
 
 
@@ -1066,6 +1070,8 @@ FOREIGN_SETUPS: dict[str, Callable[..., Any]] = {
     ),
     # `track`'s defaults without the smoothing of the finished track (torchpf.smooth): the filter alone
     "no_smooth": tracker_setup(smooth=False),
+    # `track --torso-limit 0.5`: the converted skeleton's spine, neck and head held within 0.5 rad
+    "torso_limit": tracker_setup(torso_limit=0.5),
     # ---- AFTER (issue 11): add the new configurations here, one entry each, e.g.
     # "calibrated": fit the body (torchpf.calibrate.fit_body on the first frames, pose from truth.csv
     #               frame 0), then track with the fitted skeleton;

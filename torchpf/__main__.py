@@ -107,6 +107,13 @@ def _parser() -> argparse.ArgumentParser:
         "segmentation that fattens or thins the person) and widen or thin the model by it",
     )
     tr.add_argument(
+        "--torso-limit",
+        metavar="RAD",
+        help="hold each unlimited rotation of the skeleton's torso chain (spine, neck, head, found from the "
+        "tree; a converted BVH has no limits) within RAD of the rest pose, e.g. 0.5 (default: none, the "
+        "skeleton as given)",
+    )
+    tr.add_argument(
         "--no-smooth",
         action="store_true",
         help="write the filter's own estimates (each frame's from the frames up to it) instead of the track "
@@ -216,17 +223,27 @@ def _parser() -> argparse.ArgumentParser:
     return ap
 
 
+def _positive(option: str, value: str, other: str) -> float:
+    """``value`` of ``option`` as a positive finite number; the error names the other word it takes."""
+    try:
+        number = float(value)
+    except ValueError:
+        raise CliError(f"{option} must be a number or {other}, got {value!r}") from None
+    if not (number > 0 and number < float("inf")):
+        raise CliError(f"{option} must be positive and finite, got {value}")
+    return number
+
+
 def _temperature(value: str | None) -> float | str | None:
     """``--temperature``: ``auto`` or a positive number."""
     if value is None or value == "auto":
         return value
-    try:
-        beta = float(value)
-    except ValueError:
-        raise CliError(f"--temperature must be a number or auto, got {value!r}") from None
-    if not (beta > 0 and beta < float("inf")):
-        raise CliError(f"--temperature must be positive and finite, got {value}")
-    return beta
+    return _positive("--temperature", value, "auto")
+
+
+def _torso_limit(value: str) -> float | None:
+    """``--torso-limit``: ``none`` or a positive number of radians."""
+    return None if value.lower() == "none" else _positive("--torso-limit", value, "none")
 
 
 def _likelihood_spec(items):
@@ -357,6 +374,8 @@ def _track(args) -> int:
     ):
         if value is not None:
             kwargs[key] = value
+    if args.torso_limit is not None:  # None is a value here: 'none' turns the guess off
+        kwargs["torso_limit"] = _torso_limit(args.torso_limit)
     kwargs["progress"] = not args.no_progress
     n = int(kwargs.get("n_particles", 500))
     if not str(kwargs.get("device") or "cpu").startswith("cuda"):
@@ -388,7 +407,7 @@ def _track(args) -> int:
     )
     from torchpf.sequence import format_frames
 
-    free = skel.free_rotations()
+    free = tracker.skeleton.free_rotations()  # the torso's may have been limited by the tracker's guess
     if len(free) > len(skel.dof_names) // 4:  # a converted BVH: no joint limits at all
         print(
             f"note: {len(free)} joint rotations of {args.skeleton} have no limits (BVH has none), so the "

@@ -106,6 +106,29 @@ def test_errors_are_one_line(seq_dir, tmp_path, capsys):
         assert "--temperature" in capsys.readouterr().err
 
 
+def test_track_torso_limit_option(seq_dir, tmp_path, capsys, monkeypatch):
+    import torchpf.tracker as tracker_module
+
+    track = ["track", str(seq_dir), "--skeleton", str(path("human.urdf")), "--out", str(tmp_path / "t.csv")]
+    for bad in ("wide", "0", "-0.5", "inf"):
+        assert main([*track, "--torso-limit", bad]) == 2
+        err = capsys.readouterr().err
+        assert "--torso-limit" in err and err.strip().count("\n") == 0
+    seen = []
+    real = tracker_module.Tracker.from_config.__func__
+    monkeypatch.setattr(
+        tracker_module.Tracker,
+        "from_config",
+        classmethod(lambda cls, cfg, **kw: seen.append(dict(cfg)) or real(cls, cfg, **kw)),
+    )
+    quick = ["--filter", "sir", "--particles", "30", "--no-progress"]
+    for given, expected in (("none", None), ("0.3", 0.3)):
+        assert main([*track, *quick, "--torso-limit", given]) == 0
+        assert seen[-1]["torso_limit"] == expected
+    assert main([*track, *quick]) == 0
+    assert "torso_limit" not in seen[-1]  # the Tracker's default
+
+
 def test_track_with_auto_temperature(seq_dir, tmp_path, capsys):
     out = tmp_path / "auto.csv"
     urdf = str(path("human.urdf"))
@@ -202,3 +225,7 @@ def test_track_says_when_the_skeleton_has_no_joint_limits(seq_dir, tmp_path, cap
     assert main([*args, "--particles", "30", "--no-smooth", "--no-progress"]) == 0
     printed = capsys.readouterr().out
     assert "have no limits" in printed and "python -m training fit-limits" in printed
+    assert f"note: {int(human.posture_dofs.sum())} joint rotations" in printed
+    # with --torso-limit the 18 torso rotations get limits (torchpf.kinematics.anatomy): the rest are counted
+    assert main([*args, "--particles", "30", "--no-smooth", "--no-progress", "--torso-limit", "0.5"]) == 0
+    assert f"note: {int(human.posture_dofs.sum()) - 18} joint rotations" in capsys.readouterr().out
