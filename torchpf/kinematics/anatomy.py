@@ -4,10 +4,10 @@ A skeleton converted from BVH has no joint limits (the format has none), so ever
 full circle. Most rotations cannot be limited without knowing what the person does (an arm raised, a leg
 kicked), but the torso's cannot turn far whatever the action: a back or a neck bends about a radian either
 way in all, spread over the three or more joints a rig splits it into (the shipped ``human.urdf`` gives each
-spine joint +-0.52 rad about its vertical and forward axes). :func:`torso_limits` holds each unlimited
-rotation of the torso chain (the chain from the root towards the highest joint of the rest pose,
-:func:`~torchpf.kinematics.tree.partition_labels`: pelvis, spine, neck, head; the root's own DOFs excluded)
-within ``+-limit`` rad of the rest pose. No joint name is read.
+spine joint +-0.52 rad about two of its axes and -0.52 to 1.05 about the third). :func:`torso_limits`
+holds each unlimited rotation of the torso chain (the chain from the root towards the highest joint of the
+rest pose, :func:`~torchpf.kinematics.tree.partition_labels`: pelvis, spine, neck, head; the root's own DOFs
+excluded) within ``+-limit`` rad of the rest pose. No joint name is read.
 
 Measured (BENCHMARKS.md, "Which joint limits carry the gain"): the torso rotations of the 11 CMU walks and
 runs, converted, stay within 0.54 rad of the rest pose (0.5 clamps the neck of 07_01 by < 0.04 rad, its

@@ -63,9 +63,9 @@ def test_the_torso_is_the_chain_from_the_root_to_the_top_whatever_the_names(tmp_
         "Head",
     }
     assert torso_rotations(_renamed(human, tmp_path)) == found
-    # the 22-DOF Fontmarty model: a torso of one joint below the head
+    # the 22-DOF Fontmarty model: its torso chain (pelvis, neck, head top) turns only at the root
     f22 = Skeleton.from_urdf(path("fontmarty22.urdf"))
-    assert torso_rotations(f22) == _chain_to_the_top(f22)
+    assert torso_rotations(f22) == _chain_to_the_top(f22) == []
 
 
 def test_only_the_unlimited_torso_rotations_get_the_limit():
