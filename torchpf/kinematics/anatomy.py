@@ -48,9 +48,9 @@ def torso_rotations(skeleton) -> list[int]:
 
 
 def torso_limits(skeleton, limit: float = TORSO_LIMIT, *, full_turn: float = 1.9 * math.pi):
-    """``skeleton`` with each *unlimited* torso rotation (:func:`torso_rotations` whose limits span at least
-    ``full_turn`` rad, as :meth:`~torchpf.skeleton.Skeleton.free_rotations`) held within ``[-limit, limit]``
-    rad of the rest pose; limits the skeleton has are kept.
+    """``skeleton`` with each *unlimited* torso rotation (:func:`torso_rotations` among
+    :meth:`~torchpf.skeleton.Skeleton.free_rotations`: limits spanning ``full_turn`` rad) held within
+    ``[-limit, limit]`` rad of the rest pose; limits the skeleton has are kept.
 
     Args:
         skeleton: a :class:`~torchpf.skeleton.Skeleton`.
@@ -63,8 +63,8 @@ def torso_limits(skeleton, limit: float = TORSO_LIMIT, *, full_turn: float = 1.9
     """
     if not limit > 0:
         raise ValueError(f"torso_limits: limit must be > 0 rad, got {limit}")
-    span = (skeleton.upper - skeleton.lower).cpu()
-    free = [d for d in torso_rotations(skeleton) if not bool(span[d] < full_turn)]
+    unlimited = set(skeleton.free_rotations(full_turn))  # the torso's rotations are posture DOFs
+    free = [d for d in torso_rotations(skeleton) if skeleton.dof_names[d] in unlimited]
     if not free:
         return skeleton, []
     D = len(skeleton.dof_names)
