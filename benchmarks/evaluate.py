@@ -805,14 +805,25 @@ def _tracker(seq_dir: Path, skeleton: Skeleton, cameras, n_particles: int, **opt
 _AS_GIVEN = {"calibrate": False}  # track the converted skeleton's body as it is
 
 
-def tracker_setup(track_options: Mapping[str, Any] | None = None, **options: Any) -> Callable[..., Tracker]:
+def tracker_setup(
+    track_options: Mapping[str, Any] | None = None,
+    *,
+    attributes: Mapping[str, Any] | None = None,
+    **options: Any,
+) -> Callable[..., Tracker]:
     """A setup that builds ``Tracker(skel, cameras, n_particles=N, fps=..., **options)`` (the CLI with
-    those options), tracked with ``tracker.track(seq_dir, seed=..., **track_options)``."""
+    those options), sets the tracker's ``attributes`` (``Tracker.hold_thin_arms``, ...: Python API only),
+    and is tracked with ``tracker.track(seq_dir, seed=..., **track_options)``."""
 
     def setup(seq_dir: Path, skeleton: Skeleton, *, n_particles: int = 500, **_) -> Tracker:
         from torchpf.sequence import read_sequence
 
-        return _tracker(seq_dir, skeleton, read_sequence(seq_dir).cameras, n_particles, **options)
+        tracker = _tracker(seq_dir, skeleton, read_sequence(seq_dir).cameras, n_particles, **options)
+        for name, value in (attributes or {}).items():
+            if not hasattr(tracker, name):
+                raise AttributeError(f"Tracker has no attribute {name!r}")
+            setattr(tracker, name, value)
+        return tracker
 
     setup.__doc__ = f"Tracker options {options}, track options {dict(track_options or {})}"
     setup.track_options = dict(track_options or {})
@@ -830,6 +841,7 @@ def setup_before(seq_dir: Path, skeleton: Skeleton, *, n_particles: int = 500, *
         dynamics="random_walk",
         dynamics_options={"stds": stds},
         torso_limit=None,
+        attributes={"hold_thin_arms": None},
     )(seq_dir, skeleton, n_particles=n_particles)
 
 
@@ -1072,6 +1084,8 @@ FOREIGN_SETUPS: dict[str, Callable[..., Any]] = {
     "no_smooth": tracker_setup(smooth=False),
     # `track --torso-limit 0.5`: the converted skeleton's spine, neck and head held within 0.5 rad
     "torso_limit": tracker_setup(torso_limit=0.5),
+    # `track --hold-thin-arms 2`: the body fits keep the arms' widths where the masks show them < 2 px
+    "hold_thin_arms": tracker_setup(attributes={"hold_thin_arms": 2.0}),
     # ---- AFTER (issue 11): add the new configurations here, one entry each, e.g.
     # "calibrated": fit the body (torchpf.calibrate.fit_body on the first frames, pose from truth.csv
     #               frame 0), then track with the fitted skeleton;

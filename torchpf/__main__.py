@@ -114,6 +114,13 @@ def _parser() -> argparse.ArgumentParser:
         "skeleton as given)",
     )
     tr.add_argument(
+        "--hold-thin-arms",
+        metavar="PX",
+        help="when the body is fitted, keep the arms' capsule widths as the skeleton has them if the arms "
+        "project thinner than PX pixels (radius) in frame 0's masks, e.g. 2: coarse, noisy masks cannot "
+        "measure an arm a pixel or two across (default: none, the arms fitted like the rest)",
+    )
+    tr.add_argument(
         "--no-smooth",
         action="store_true",
         help="write the filter's own estimates (each frame's from the frames up to it) instead of the track "
@@ -244,6 +251,11 @@ def _temperature(value: str | None) -> float | str | None:
 def _torso_limit(value: str) -> float | None:
     """``--torso-limit``: ``none`` or a positive number of radians."""
     return None if value.lower() == "none" else _positive("--torso-limit", value, "none")
+
+
+def _hold_thin_arms(value: str) -> float | None:
+    """``--hold-thin-arms``: ``none`` or a positive number of pixels."""
+    return None if value.lower() == "none" else _positive("--hold-thin-arms", value, "none")
 
 
 def _likelihood_spec(items):
@@ -381,7 +393,10 @@ def _track(args) -> int:
     if not str(kwargs.get("device") or "cpu").startswith("cuda"):
         check_memory(n * _BYTES_PER_PARTICLE_CAPSULE * max(len(skel.bones), 1), f"--particles {n}")
     kwargs["fps"] = _frame_rate(args, seq, kwargs.get("fps"))
+    hold = _hold_thin_arms(args.hold_thin_arms) if args.hold_thin_arms is not None else None
     tracker = Tracker.from_config(kwargs, skeleton=skel, cameras=seq.cameras)
+    if args.hold_thin_arms is not None:  # a Tracker attribute (the body fits'), not a constructor keyword
+        tracker.hold_thin_arms = hold
     init = args.init
     if init not in (None, "auto", "truth"):
         init = _require_file(init, "--init pose CSV")

@@ -59,7 +59,7 @@ from torchpf.geometry import Capsules2D, project_capsules, sample_in_capsules
 from torchpf.kinematics.symmetry import mirror_limbs
 from torchpf.observations import Silhouettes
 
-__all__ = ["CalibrationReport", "bone_groups", "fit_body", "overlay_image"]
+__all__ = ["CalibrationReport", "bone_groups", "fit_body", "overlay_image", "projected_radii"]
 
 
 # ---------------------------------------------------------------------------------------------- groups
@@ -95,6 +95,21 @@ def bone_groups(skeleton, *, tol: float = 0.1) -> list[list[int]]:
 
 
 # ---------------------------------------------------------------------------------------------- model
+def projected_radii(skeleton, cameras: CameraRig, pose, size: tuple[int, int] | None = None) -> torch.Tensor:
+    """(C,) each capsule's radius in pixels at ``pose`` (D,): the mean over its two ends and over the cameras
+    that see it in front (pinhole: ``f r / z`` at each end), with the rig resized to ``size`` (W, H), the
+    masks' grid, when given. NaN for a capsule no camera sees."""
+    skeleton, cameras = on_cpu(skeleton), on_cpu(cameras)
+    rig = cameras.resized(*size) if size is not None else cameras
+    with torch.no_grad():
+        joints = skeleton.fk(torch.as_tensor(pose, dtype=torch.float64).cpu().to(skeleton.radii.dtype))
+        bones = skeleton.tree.bones
+        caps = project_capsules(rig, joints[None, bones[:, 0]], joints[None, bones[:, 1]], skeleton.radii)
+        seen = caps.valid[0].to(caps.ra.dtype)  # (V, C)
+        radius = 0.5 * (caps.ra[0] + caps.rb[0])
+        return ((radius * seen).sum(0) / seen.sum(0)).double()
+
+
 def _ancestors(parents: Sequence[int]) -> torch.Tensor:
     """(J, J) float: ``A[j, a] = 1`` when ``a`` is ``j`` or one of its ancestors."""
     J = len(parents)
@@ -359,6 +374,7 @@ def fit_body(
     view_offset_sigma: float | None = None,
     max_size: int = 200,
     groups: list[list[int]] | None = None,
+    fixed: Sequence[int] = (),
     tol: float = 1e-4,
     patience: int = 20,
     refresh_every: int = 10,
@@ -402,6 +418,10 @@ def fit_body(
             radii explain what the masks have in common and the offsets what one mask has on its own.
         max_size: masks whose larger side exceeds this many pixels are fitted at reduced resolution.
         groups: bone groups overriding :func:`bone_groups`.
+        fixed: bones (indices into ``skeleton.bones``) whose radii are held as the skeleton has them: their
+            groups' radii are not fitted (a group's bones share one radius, so holding one bone holds its
+            mirror image too). For capsules the masks cannot measure, e.g. limbs a pixel or two across in
+            masks whose outlines move by a pixel (``Tracker.hold_thin_arms``).
         refresh_every: steps between two choices of the pixels scored (:func:`_active_pixels`).
         progress: a tqdm progress bar over the iterations.
 
@@ -444,6 +464,18 @@ def fit_body(
         member[bones, g] = 1.0
     if not bool((member.sum(1) == 1).all()):
         raise ValueError("groups must hold every bone exactly once")
+    fixed = sorted({int(k) for k in fixed})
+    if fixed and not 0 <= fixed[0] <= fixed[-1] < C:
+        raise ValueError(f"fit_body: fixed bones {fixed} out of range (the skeleton has {C} bones)")
+    held = (member[fixed].sum(0) > 0) if fixed else torch.zeros(G, dtype=torch.bool)
+    is_fixed = torch.zeros(C, dtype=torch.bool)
+    is_fixed[fixed] = True
+    given_r = skeleton.radii.to(dtype)
+
+    def bone_radii(log_r):
+        """(C,) radii: the groups' fitted ones, the fixed bones' as given."""
+        return torch.where(is_fixed, given_r, (member @ log_r).exp())
+
     log_r0 = (member.t() @ skeleton.radii.to(dtype).clamp_min(1e-4).log()) / member.sum(0)
     joint_group = torch.full((len(skeleton.joint_names),), -1, dtype=torch.long)
     for k, (_, c) in enumerate(skeleton.bones):
@@ -469,7 +501,7 @@ def fit_body(
 
     with torch.no_grad():
         joints0 = joints_of(theta0, log_s, log_l)
-        model0 = _model_masks(skeleton, rig, joints0, (member @ log_r0).exp(), H, W)
+        model0 = _model_masks(skeleton, rig, joints0, bone_radii(log_r0), H, W)
     hard = target.numpy() > 0.5
     iou_before = _iou(model0, hard, valid, rig.names)
     area = (target * torch.from_numpy(valid)[..., None, None]).sum((-2, -1)).clamp_min(1.0)  # (F, V)
@@ -495,7 +527,7 @@ def fit_body(
     def refresh(width: float) -> None:
         """The pixels scored for the next steps (:func:`_active_pixels`) and their capsule pairs."""
         with torch.no_grad():
-            joints, radii = joints_of(theta, log_s, log_l), (member @ log_r).exp()
+            joints, radii = joints_of(theta, log_s, log_l), bone_radii(log_r)
             model = _model_masks(skeleton, rig, joints, radii, H, W)
             off = offsets()
             caps = capsules(joints, radii, off)
@@ -514,7 +546,7 @@ def fit_body(
 
     def objective(width: float, dist_w: float):
         joints = joints_of(theta, log_s, log_l)
-        caps = capsules(joints, (member @ log_r).exp(), offsets())
+        caps = capsules(joints, bone_radii(log_r), offsets())
         cov = _coverage(caps, pixels["uv"], pixels["pix"], pixels["cap"], width)
         sq = (cov - pixels["target"]) ** 2
         per_view = sq.new_zeros(F * V).index_add(0, pixels["view"], sq)
@@ -569,6 +601,8 @@ def fit_body(
             opt.zero_grad()
             loss = objective(width, 0.0 if last else distance_weight)
             loss.backward()
+            if fixed:  # zero gradients leave Adam's moments, and so the held radii, at rest
+                log_r.grad[held] = 0.0
             opt.step()
             with torch.no_grad():
                 theta.copy_(skeleton.clamp(theta))
@@ -588,7 +622,7 @@ def fit_body(
 
     with torch.no_grad():
         scale = float(log_s.exp())
-        radii = (member @ log_r).exp().double()
+        radii = torch.where(is_fixed, skeleton.radii.double(), bone_radii(log_r).double())
         lengths = per_joint(log_l).exp().double() if fit_lengths else None
         fitted = skeleton.with_body(radii=radii / scale, scale=scale, lengths=lengths)
         poses_after = theta.detach().double()

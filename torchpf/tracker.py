@@ -57,7 +57,7 @@ from torchpf.filters.base import frame_summary
 from torchpf.filters.registry import FILTERS
 from torchpf.io import MocapCsvWriter, write_mocap_csv
 from torchpf.kinematics import body_partition
-from torchpf.kinematics.anatomy import torso_limits
+from torchpf.kinematics.anatomy import arm_bones, torso_limits
 from torchpf.likelihoods import LIKELIHOODS, TemperedLikelihood, calibrate_temperature, make_likelihood
 from torchpf.observations import Frame, Keypoints2D, PointCloud, Silhouettes
 
@@ -623,6 +623,19 @@ class Tracker(nn.Module):
     #: and "Round 11"). An option for bodies a user knows to be ordinary.
     fit_radius_sigma: float | None = None
 
+    #: ``track``'s body fits (frame 0 and the refit) keep the arms' capsule radii as the skeleton has them
+    #: (:func:`~torchpf.kinematics.anatomy.arm_bones`, ``fixed`` of :func:`~torchpf.calibrate.fit_body`) when
+    #: the arms' thickest capsule projects to a radius under this many pixels of frame 0's masks at the
+    #: initial pose (:func:`~torchpf.calibrate.projected_radii`, mean over the cameras; warned); None (the
+    #: default) fits them like every other capsule (``track --hold-thin-arms PX``). Masks whose outlines
+    #: move by a pixel do not measure an arm a pixel or two across: on noisy foreign renders (160x120, the
+    #: converted CMU skeleton's upper arms 1.1-1.6 px) the fit made the arms 1.3-2.4 times as thick as the
+    #: clean masks' fit does. Held at the converter's ``0.15 x`` bone length (2.0 px), ten noisy draws
+    #: tracked at 65.3 against 67.5 mm (paired -2.3, standard error 1.7), but clean masks, which do measure
+    #: the arms, at 29.7 against 26.9 (BENCHMARKS.md, "The arms' widths held"): an option for coarse, noisy
+    #: masks, not the default.
+    hold_thin_arms: float | None = None
+
     def with_skeleton(self, skeleton) -> Tracker:
         """The same tracker (all keywords alike) on another skeleton, e.g. a body fitted to the masks. It runs
         where this one runs now (:meth:`to` included), at the frame rate its prior was built for."""
@@ -739,7 +752,14 @@ class Tracker(nn.Module):
             pose, fitted = self._auto_init(frames, calibrate)
             if fitted is not None:
                 fitted, pose, _ = self._refit(
-                    fitted, pose, frames, seed, fps, self.auto_refit_frames, gate=True
+                    fitted,
+                    pose,
+                    frames,
+                    seed,
+                    fps,
+                    self.auto_refit_frames,
+                    gate=True,
+                    held=self._held_arms(frames[0], pose),
                 )
                 tracker = self.with_skeleton(fitted)
                 result = tracker.track(
@@ -758,10 +778,18 @@ class Tracker(nn.Module):
         if how != "auto" and self._calibrates(calibrate, frames[0], init=how):
             from torchpf.detect import fit_body_to_frame
 
+            held = self._held_arms(frames[0], init)
             fitted, _ = fit_body_to_frame(
-                self.skeleton, self.cameras, frames[0], init, radius_sigma=self.fit_radius_sigma
+                self.skeleton,
+                self.cameras,
+                frames[0],
+                init,
+                radius_sigma=self.fit_radius_sigma,
+                fixed=held,
             )
-            fitted, _, _ = self._refit(fitted, fitted.clamp(init), frames, seed, fps, self.refit_frames)
+            fitted, _, _ = self._refit(
+                fitted, fitted.clamp(init), frames, seed, fps, self.refit_frames, held=held
+            )
             # The track starts at the pose given, not at the fit's: refined on one frame with defects, the
             # fit's pose drifts (60-65 mm on noisy foreign renders, legs crossed in 3-4 of 11 clips); the
             # track needs only the body from the fit (BENCHMARKS.md, "Where the track starts after the
@@ -954,8 +982,41 @@ class Tracker(nn.Module):
         pose, fitted, _ = detector.fit(frames[0], det=det, motion=motion)
         return pose, fitted if self._calibrates(calibrate, frames[0], init="auto") else None
 
+    def _held_arms(self, frame, pose) -> list[int]:
+        """The arm bones whose radii ``track``'s body fits hold (:attr:`hold_thin_arms`; warned), or []."""
+        from torchpf.detect import silhouette_masks
+
+        got = silhouette_masks(frame) if self.hold_thin_arms is not None else None
+        bones = arm_bones(self.skeleton) if got is not None else []
+        if not bones:
+            return []
+        from torchpf.calibrate import projected_radii
+
+        H, W = got[0].shape[-2:]
+        radius = projected_radii(self.skeleton, self.cameras, pose, (W, H))[bones]
+        thickest = float(radius[torch.isfinite(radius)].max()) if bool(torch.isfinite(radius).any()) else 0.0
+        if not thickest < self.hold_thin_arms:
+            return []
+        warnings.warn(
+            f"the arms' capsules project at most {thickest:.1f} px thick (radius) in frame 0's {W}x{H} "
+            f"masks, under hold_thin_arms={self.hold_thin_arms:g}: the body fit keeps their radii as the "
+            "skeleton has them (the masks cannot measure them); the arms are the limbs hanging off the "
+            "torso above the root, a guess from the skeleton's structure",
+            stacklevel=3,
+        )
+        return bones
+
     def _refit(
-        self, fitted, pose: torch.Tensor, frames, seed: int | None, fps: float | None, k: int, *, gate=False
+        self,
+        fitted,
+        pose: torch.Tensor,
+        frames,
+        seed: int | None,
+        fps: float | None,
+        k: int,
+        *,
+        gate=False,
+        held: list[int] | None = None,
     ):
         """``(body, pose, info)``: the body fitted again at the poses tracked over the first ``k`` frames.
 
@@ -964,7 +1025,8 @@ class Tracker(nn.Module):
         13-16 mm on every part of 60 frames), the mask defects of one frame with a given pose (noisy foreign
         renders: group radii off by a factor of 2-3). So the first ``k`` frames are tracked on ``fitted``
         from ``pose``, and the body is fitted again to the frames with silhouettes among them at the
-        tracked poses (:func:`torchpf.detect.fit_body_to_frame`, one pose per frame, each refined).
+        tracked poses (:func:`torchpf.detect.fit_body_to_frame`, one pose per frame, each refined). The bones
+        ``held`` (:meth:`_held_arms`) keep the radii of the skeleton as given (``self.skeleton``) in both.
 
         ``gate`` (``init="auto"``): the same frames are tracked on the refitted body too, and it is kept
         only where its log evidence ``log p(z_1..k)`` is the higher; ``pose`` then becomes the refit's
@@ -975,6 +1037,10 @@ class Tracker(nn.Module):
         ``pose`` is returned as it came. The passes use ``seed`` (not a caller's generator), so gated bodies
         are compared on the same random numbers. ``info``: ``frames``, ``refit`` (taken), and with the gate
         ``log_evidence`` (first body, refitted body)."""
+        if held:  # the auto-initialised body's arms were fitted by the detector: back to the skeleton's
+            radii = fitted.radii.detach().double().cpu().clone()
+            radii[held] = self.skeleton.radii.detach().double().cpu()[held]
+            fitted = fitted.with_body(radii=radii)
         k = min(int(k), len(frames))
         if k < 2:
             return fitted, pose, {"frames": k, "refit": False}
@@ -1005,6 +1071,7 @@ class Tracker(nn.Module):
             before.angles[used].double(),
             view_offset_sigma=self.refit_view_offset,
             radius_sigma=self.fit_radius_sigma,
+            fixed=held or (),
         )
         if not gate:
             return refit, pose, {"frames": len(used), "refit": True}

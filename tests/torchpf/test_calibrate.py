@@ -13,8 +13,9 @@ import torch
 from torchpf import Skeleton
 from torchpf.__main__ import main
 from torchpf.assets import path
-from torchpf.calibrate import bone_groups, fit_body, scaled_joints
+from torchpf.calibrate import bone_groups, fit_body, projected_radii, scaled_joints
 from torchpf.camera import camera_ring
+from torchpf.kinematics.anatomy import arm_bones
 from torchpf.sequence import SequenceData, write_sequence
 
 from ._masks import render_masks
@@ -201,6 +202,62 @@ def test_radius_sigma_holds_the_spread_of_the_widths_not_what_the_masks_show(hum
     assert float(held.radii_after.log().std()) < 0.6 * float(free.radii_after.log().std())
     with pytest.raises(ValueError, match="radius_sigma"):
         fit_body(scene["stick"], scene["rig"], scene["masks"], scene["poses"], radius_sigma=0.0)
+
+
+def test_fixed_bones_keep_their_radii_and_the_rest_is_fitted(human, scene):
+    """``fixed``: the arms' bones keep the stick figure's radii exactly (their groups get no step), every
+    other group the masks show is fitted as without them (10 %: ``_check_fit``'s tolerance); a bone index
+    out of range is an error naming the count."""
+    arms = arm_bones(human)
+    fitted, report = fit_body(
+        scene["stick"], scene["rig"], scene["masks"], scene["poses"], iterations=200, fixed=arms
+    )
+    assert torch.allclose(fitted.radii[arms], scene["stick"].radii[arms], rtol=1e-9, atol=0)
+    groups_of_arms = {g for g, bones in enumerate(report.groups) if set(bones) & set(arms)}
+    assert groups_of_arms and all(set(report.groups[g]) <= set(arms) for g in groups_of_arms)
+    true_radii = human.radii * TRUE_SCALE
+    others = [g for g in _observable(human, report.groups) if g not in groups_of_arms]
+    assert len(others) >= 6
+    for g in others:
+        want = float(true_radii[report.groups[g]].mean())
+        assert float(report.radii_after[g]) == pytest.approx(want, rel=0.10), report.labels[g]
+    with pytest.raises(ValueError, match=f"the skeleton has {len(human.bones)} bones"):
+        fit_body(scene["stick"], scene["rig"], scene["masks"], scene["poses"], fixed=[len(human.bones)])
+
+
+def test_projected_radii_match_opencv(human, scene):
+    """Each capsule's radius in pixels against OpenCV: both ends and a point one radius off each end,
+    perpendicular to the bone and to the line of sight, projected with ``cv2.projectPoints``; the mean over
+    the ends and the cameras agrees within 3 % (the model's ``sqrt(cos t)`` area correction off the optical
+    axis is the difference). Masks at half the cameras' size halve every radius."""
+    import cv2
+
+    skel, rig, pose = scene["truth"], scene["rig"], scene["poses"][2]
+    got = projected_radii(skel, rig, pose)
+    joints = skel.fk(pose).double().numpy()
+    want = np.zeros(len(skel.bones))
+    for cam in rig.cameras:
+        K, R, t = (x.double().numpy() for x in (cam.K, cam.R, cam.t))
+        centre = -R.T @ t
+        rvec = cv2.Rodrigues(R)[0]
+        for k, (p, c) in enumerate(skel.bones):
+            a, b = joints[p], joints[c]
+            axis = (b - a) / max(np.linalg.norm(b - a), 1e-9)
+            for end in (a, b):
+                sight = end - centre
+                side = np.cross(axis, sight)
+                side = (
+                    side / np.linalg.norm(side)
+                    if np.linalg.norm(side) > 1e-9
+                    else np.cross(sight, [0, 0, 1.0])
+                )
+                side /= np.linalg.norm(side)
+                r = float(skel.radii[k])
+                uv = cv2.projectPoints(np.stack([end, end + r * side]), rvec, t, K, None)[0].reshape(2, 2)
+                want[k] += np.linalg.norm(uv[1] - uv[0]) / (2 * len(rig.cameras))
+    assert np.allclose(got.numpy(), want, rtol=0.03)
+    half = projected_radii(skel, rig, pose, (80, 60))
+    assert torch.allclose(half, got / 2, rtol=1e-4)
 
 
 def test_fit_lengths_recovers_longer_thighs(human, scene):

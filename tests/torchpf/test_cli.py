@@ -106,14 +106,19 @@ def test_errors_are_one_line(seq_dir, tmp_path, capsys):
         assert "--temperature" in capsys.readouterr().err
 
 
+def _rejects(track: list[str], option: str, values, capsys) -> None:
+    """Each of ``values`` given to ``option`` is a one-line error (exit 2) that names the option."""
+    for bad in values:
+        assert main([*track, option, bad]) == 2
+        err = capsys.readouterr().err
+        assert option in err and err.strip().count("\n") == 0
+
+
 def test_track_torso_limit_option(seq_dir, tmp_path, capsys, monkeypatch):
     import torchpf.tracker as tracker_module
 
     track = ["track", str(seq_dir), "--skeleton", str(path("human.urdf")), "--out", str(tmp_path / "t.csv")]
-    for bad in ("wide", "0", "-0.5", "inf"):
-        assert main([*track, "--torso-limit", bad]) == 2
-        err = capsys.readouterr().err
-        assert "--torso-limit" in err and err.strip().count("\n") == 0
+    _rejects(track, "--torso-limit", ("wide", "0", "-0.5", "inf"), capsys)
     seen = []
     real = tracker_module.Tracker.from_config.__func__
     monkeypatch.setattr(
@@ -127,6 +132,28 @@ def test_track_torso_limit_option(seq_dir, tmp_path, capsys, monkeypatch):
         assert seen[-1]["torso_limit"] == expected
     assert main([*track, *quick]) == 0
     assert "torso_limit" not in seen[-1]  # the Tracker's default
+
+
+def test_track_hold_thin_arms_option(seq_dir, tmp_path, capsys, monkeypatch):
+    """``--hold-thin-arms PX`` sets the tracker's attribute (the body fits'), ``none`` or no option leaves
+    the default (None); a word or a non-positive number is a one-line error naming the option."""
+    import torchpf.tracker as tracker_module
+
+    track = ["track", str(seq_dir), "--skeleton", str(path("human.urdf")), "--out", str(tmp_path / "t.csv")]
+    _rejects(track, "--hold-thin-arms", ("thin", "0", "-2", "inf"), capsys)
+    seen = []
+    real = tracker_module.Tracker.track
+    monkeypatch.setattr(
+        tracker_module.Tracker,
+        "track",
+        lambda self, *a, **kw: seen.append(self.hold_thin_arms) or real(self, *a, **kw),
+    )
+    quick = ["--filter", "sir", "--particles", "30", "--no-progress"]
+    for given, expected in (("none", None), ("2", 2.0), ("1.5", 1.5)):
+        assert main([*track, *quick, "--hold-thin-arms", given]) == 0
+        assert seen[-1] == expected
+    assert main([*track, *quick]) == 0
+    assert seen[-1] is None
 
 
 def test_track_with_auto_temperature(seq_dir, tmp_path, capsys):

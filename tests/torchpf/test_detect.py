@@ -13,7 +13,8 @@ import pytest
 import torch
 
 from torchpf.detect import PersonDetector, looks_uncalibrated, visual_hull
-from torchpf.observations import Frame
+from torchpf.kinematics.anatomy import arm_bones
+from torchpf.observations import Frame, Silhouettes
 from torchpf.smooth import ROBUST, TrajectorySmoother
 from torchpf.tracker import Tracker
 
@@ -439,3 +440,31 @@ def test_track_fits_an_uncalibrated_body_at_the_initial_pose(case, device):
     asked.clear()
     spied(frames)
     assert len(fits) == 2 and [a["radius_sigma"] for a in asked] == [0.25, 0.25]
+    # the arms fitted like every capsule by default; with hold_thin_arms (2 px) the case's 160x120 masks show
+    # the converted arms at most ~1.6 px thick: both fits hold their radii, and the body tracked keeps the
+    # converter's
+    assert [list(a["fixed"]) for a in asked] == [[], []]
+    arms = arm_bones(case.skeleton)
+    tracker.fit_radius_sigma, tracker.hold_thin_arms = None, 2.0
+    asked.clear()
+    spied(frames)
+    assert arms and [list(a["fixed"]) for a in asked] == [arms, arms]
+    assert torch.allclose(fits[1][2].radii[arms].double(), skeleton.radii[arms].double().cpu(), rtol=1e-6)
+
+
+def test_the_arms_are_held_only_where_the_masks_are_too_coarse_to_measure_them(case):
+    """``Tracker.hold_thin_arms`` (2 px): on the case's 160x120 masks the converted arms' thickest capsule
+    projects under 2 px and they are held, warned; the same masks at 4x the size (640x480) show it at 4x
+    that and nothing is held, silently; no masks, or the option off (the default), nothing held."""
+    tracker = Tracker(case.skeleton, case.cameras, n_particles=10, fps=30.0, progress=False)
+    assert tracker.hold_thin_arms is None and tracker._held_arms(case.frames[0], case.angles[0]) == []
+    tracker.hold_thin_arms = 2.0
+    masks = case.frames[0].silhouettes.masks
+    with pytest.warns(UserWarning, match=r"arms' capsules project at most 1\.\d px .* 160x120"):
+        held = tracker._held_arms(case.frames[0], case.angles[0])
+    assert held == arm_bones(case.skeleton)
+    fine = Frame(silhouettes=Silhouettes(masks.repeat_interleave(4, -1).repeat_interleave(4, -2)))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert tracker._held_arms(fine, case.angles[0]) == []
+        assert tracker._held_arms(Frame(), case.angles[0]) == []

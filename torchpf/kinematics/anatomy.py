@@ -1,4 +1,5 @@
-"""Joint limits guessed from a skeleton's structure, for the joints a skeleton leaves unlimited.
+"""Guesses from a skeleton's structure: joint limits for the joints it leaves unlimited, and which limbs are
+its arms.
 
 A skeleton converted from BVH has no joint limits (the format has none), so every rotation may turn by a
 full circle. Most rotations cannot be limited without knowing what the person does (an arm raised, a leg
@@ -18,10 +19,15 @@ ten draws at 66.6 mm against 67.5 (paired -0.9, standard error 1.4) with more fr
 19.7), so :class:`~torchpf.tracker.Tracker` applies it only when asked (``torso_limit=0.5``, ``track
 --torso-limit 0.5``).
 
+The arms (:func:`arm_bones`) are the limbs that hang off the torso chain above the root in the rest pose
+(the legs hang off the root or the pelvis): ``Tracker.hold_thin_arms`` keeps their capsules' widths out of
+the body fit where the masks are too coarse to measure them.
+
 Example::
 
-    from torchpf.kinematics.anatomy import torso_limits
+    from torchpf.kinematics.anatomy import arm_bones, torso_limits
     limited, names = torso_limits(skeleton)        # a Skeleton, and the DOFs it limited
+    arms = arm_bones(skeleton)                     # indices into skeleton.bones
 """
 
 from __future__ import annotations
@@ -72,3 +78,23 @@ def torso_limits(skeleton, limit: float = TORSO_LIMIT, *, full_turn: float = 1.9
     upper = torch.full((D,), math.inf, dtype=torch.float64)
     lower[free], upper[free] = -float(limit), float(limit)
     return skeleton.with_limits(lower, upper), [skeleton.dof_names[d] for d in free]
+
+
+def arm_bones(skeleton) -> list[int]:
+    """Indices into ``skeleton.bones`` of the capsules of the arms: the limbs (``tree.joint_part > 0``) whose
+    attachment joint on the torso chain lies above the root in the rest pose (z up), where the legs hang
+    off the root itself or off a pelvis joint at its height. From the tree and the rest pose only; empty
+    for a skeleton without such limbs."""
+    tree = skeleton.tree
+    part, parents = tree.joint_part.tolist(), tree.parents.tolist()
+    with torch.no_grad():
+        rest = skeleton.fk(torch.zeros(len(skeleton.dof_names), dtype=torch.float64)).double()
+    roots = [j for j, p in enumerate(parents) if p < 0]
+    if not roots:
+        return []
+    root_z = float(rest[roots[0], 2])
+    arms = set()
+    for j, p in enumerate(parents):
+        if part[j] > 0 and p >= 0 and part[p] == 0 and float(rest[p, 2]) > root_z + 1e-6:
+            arms.add(part[j])
+    return [k for k, (_, c) in enumerate(skeleton.bones) if part[c] in arms]

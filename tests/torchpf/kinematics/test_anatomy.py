@@ -1,5 +1,5 @@
 """torchpf.kinematics.anatomy: the torso's rotations found from the tree, and limited where a skeleton has no
-limits (a converted BVH)."""
+limits (a converted BVH); the arms found from the tree and the rest pose."""
 
 import math
 import re
@@ -11,7 +11,7 @@ import torch
 
 from torchpf import Skeleton
 from torchpf.assets import path
-from torchpf.kinematics.anatomy import TORSO_LIMIT, torso_limits, torso_rotations
+from torchpf.kinematics.anatomy import TORSO_LIMIT, arm_bones, torso_limits, torso_rotations
 
 CMU = Path(__file__).resolve().parents[3].parent / "shared" / "mocap" / "cmu"
 
@@ -140,3 +140,25 @@ def test_a_converted_cmu_clip_moves_its_torso_within_the_suggested_limit(clip):
     truth = motion.angles[1:].double()
     moved = (limited.fk(limited.clamp(truth)) - skel.fk(truth)).norm(dim=-1).amax()
     assert float(moved) < 0.015
+
+
+@pytest.mark.parametrize("asset", ["human.urdf", "fontmarty22.urdf"])
+def test_the_arms_are_the_limbs_hanging_off_the_torso_above_the_root(asset, tmp_path):
+    """Both shipped bodies (a 31-joint CMU-like rig, Fontmarty's 22-DOF model): the arms' bones are every
+    bone of the two limbs attached to the torso chain above the root (their hands the highest limb joints
+    but the head's, their roots off the chest), whatever the joints are called; the legs are not."""
+    skel = Skeleton.from_urdf(path(asset))
+    renamed = _renamed(skel, tmp_path)
+    arms = arm_bones(skel)
+    assert arms == arm_bones(renamed)
+    part, parents = skel.tree.joint_part.tolist(), skel.tree.parents.tolist()
+    rest = skel.fk(torch.zeros(len(skel.dof_names), dtype=torch.float64))
+    limbs = {part[c] for k, (_, c) in enumerate(skel.bones) if k in arms}
+    assert len(limbs) == 2  # two arms, every bone of each
+    assert sorted(arms) == [k for k, (_, c) in enumerate(skel.bones) if part[c] in limbs]
+    root_z = float(rest[0, 2])
+    for j, p in enumerate(parents):
+        if part[j] > 0 and p >= 0 and part[p] == 0:  # a limb's attachment on the torso chain
+            assert (part[j] in limbs) == (float(rest[p, 2]) > root_z + 0.2)  # arms off the chest
+    names = {skel.joint_names[skel.bones[k][1]].lower() for k in arms}
+    assert not any("leg" in n or "knee" in n or "foot" in n for n in names)
