@@ -17,9 +17,10 @@ Defect sets are :data:`benchmarks.foreign.PRESETS` names or fields of :class:`be
 
     python -m benchmarks.body_fit --defects noisy morph_px=1 ragged=0.25 holes=3 merge=0.3 --jobs 2
 
-``--fit`` passes keywords to the fit (``view_offset_sigma=1.0``, ``radius_sigma=0.25``); ``--hold-arms``
-keeps the arms' radii out of the defect sets' fits, as ``track`` does on such masks
-(``Tracker.hold_thin_arms``): their rows then show what the other capsules do with the arms held.
+``--fit`` passes keywords to the fit (``view_offset_sigma=1``, ``radius_sigma=0.25``,
+``iterations=100``); ``--hold-arms`` keeps the arms' radii out of the defect sets' fits, as ``track`` does on
+such masks (``Tracker.hold_thin_arms``): their rows then show what the other capsules do with the arms
+held.
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from benchmarks.cue_bias import parse_setting
 from benchmarks.evaluate import CMU_DIR
 from benchmarks.foreign import (
     CMU_SCALE,
@@ -65,17 +67,14 @@ def parse_defects(text: str) -> Defects:
     return Defects(**out)
 
 
+#: the integer keywords of :func:`torchpf.calibrate.fit_body` (``--fit``)
+FIT_INTS = ("iterations", "max_size", "patience", "refresh_every", "frames_used")
+
+
 def parse_fit(text: str) -> dict[str, float | int]:
-    """``"view_offset_sigma=1.0,iterations=50"`` -> keywords of :func:`torchpf.calibrate.fit_body` (a value
-    without a decimal point or exponent is an int)."""
-    out: dict[str, float | int] = {}
-    for item in filter(None, (s.strip() for s in text.split(","))):
-        key, sep, value = item.partition("=")
-        if not sep:
-            raise ValueError(f"--fit {text!r}: {item!r} is not key=value")
-        value = value.strip()
-        out[key.strip()] = float(value) if any(ch in value for ch in ".eE") else int(value)
-    return out
+    """``"view_offset_sigma=1,iterations=50"`` -> keywords of :func:`torchpf.calibrate.fit_body`
+    (:func:`benchmarks.cue_bias.parse_setting` with :data:`FIT_INTS`)."""
+    return parse_setting(text, FIT_INTS)
 
 
 def clip_bodies(

@@ -30,16 +30,17 @@ from benchmarks.evaluate import CMU_DIR
 from benchmarks.foreign import body_plan, build_sequence
 
 
-def parse_setting(text: str) -> dict[str, float | int]:
-    """``"tau=6,despeckle=3"`` -> ``{"tau": 6.0, "despeckle": 3}`` (``""``: the cue's defaults)."""
+def parse_setting(
+    text: str, ints: tuple[str, ...] = ("despeckle", "n_samples", "n_body", "n_cap")
+) -> dict[str, float | int]:
+    """``"tau=6,despeckle=3"`` -> ``{"tau": 6.0, "despeckle": 3}`` (``""``: the defaults): keywords, ints
+    for the keys in ``ints`` (the cue's by default), floats for the others."""
     out: dict[str, float | int] = {}
     for item in filter(None, (s.strip() for s in text.split(","))):
         key, sep, value = item.partition("=")
         if not sep:
             raise ValueError(f"setting {text!r}: {item!r} is not key=value")
-        out[key.strip()] = (
-            int(value) if key.strip() in ("despeckle", "n_samples", "n_body", "n_cap") else float(value)
-        )
+        out[key.strip()] = int(value) if key.strip() in ints else float(value)
     return out
 
 

@@ -248,14 +248,9 @@ def _temperature(value: str | None) -> float | str | None:
     return _positive("--temperature", value, "auto")
 
 
-def _torso_limit(value: str) -> float | None:
-    """``--torso-limit``: ``none`` or a positive number of radians."""
-    return None if value.lower() == "none" else _positive("--torso-limit", value, "none")
-
-
-def _hold_thin_arms(value: str) -> float | None:
-    """``--hold-thin-arms``: ``none`` or a positive number of pixels."""
-    return None if value.lower() == "none" else _positive("--hold-thin-arms", value, "none")
+def _positive_or_none(option: str, value: str) -> float | None:
+    """``--torso-limit`` (rad), ``--hold-thin-arms`` (px): ``none`` or a positive number."""
+    return None if value.lower() == "none" else _positive(option, value, "none")
 
 
 def _likelihood_spec(items):
@@ -387,16 +382,15 @@ def _track(args) -> int:
         if value is not None:
             kwargs[key] = value
     if args.torso_limit is not None:  # None is a value here: 'none' turns the guess off
-        kwargs["torso_limit"] = _torso_limit(args.torso_limit)
+        kwargs["torso_limit"] = _positive_or_none("--torso-limit", args.torso_limit)
     kwargs["progress"] = not args.no_progress
     n = int(kwargs.get("n_particles", 500))
     if not str(kwargs.get("device") or "cpu").startswith("cuda"):
         check_memory(n * _BYTES_PER_PARTICLE_CAPSULE * max(len(skel.bones), 1), f"--particles {n}")
     kwargs["fps"] = _frame_rate(args, seq, kwargs.get("fps"))
-    hold = _hold_thin_arms(args.hold_thin_arms) if args.hold_thin_arms is not None else None
     tracker = Tracker.from_config(kwargs, skeleton=skel, cameras=seq.cameras)
     if args.hold_thin_arms is not None:  # a Tracker attribute (the body fits'), not a constructor keyword
-        tracker.hold_thin_arms = hold
+        tracker.hold_thin_arms = _positive_or_none("--hold-thin-arms", args.hold_thin_arms)
     init = args.init
     if init not in (None, "auto", "truth"):
         init = _require_file(init, "--init pose CSV")

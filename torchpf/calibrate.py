@@ -622,7 +622,7 @@ def fit_body(
 
     with torch.no_grad():
         scale = float(log_s.exp())
-        radii = torch.where(is_fixed, skeleton.radii.double(), bone_radii(log_r).double())
+        radii = torch.where(is_fixed, skeleton.radii.double(), (member @ log_r).exp().double())
         lengths = per_joint(log_l).exp().double() if fit_lengths else None
         fitted = skeleton.with_body(radii=radii / scale, scale=scale, lengths=lengths)
         poses_after = theta.detach().double()

@@ -994,7 +994,7 @@ class Tracker(nn.Module):
 
         H, W = got[0].shape[-2:]
         radius = projected_radii(self.skeleton, self.cameras, pose, (W, H))[bones]
-        thickest = float(radius[torch.isfinite(radius)].max()) if bool(torch.isfinite(radius).any()) else 0.0
+        thickest = float(radius.nan_to_num(0.0).max())  # NaN: no camera sees it
         if not thickest < self.hold_thin_arms:
             return []
         warnings.warn(
