@@ -18,9 +18,9 @@ Defect sets are :data:`benchmarks.foreign.PRESETS` names or fields of :class:`be
     python -m benchmarks.body_fit --defects noisy morph_px=1 ragged=0.25 holes=3 merge=0.3 --jobs 2
 
 ``--fit`` passes keywords to the fit (``view_offset_sigma=1``, ``radius_sigma=0.25``,
-``iterations=100``); ``--hold-arms`` keeps the arms' radii out of the defect sets' fits, as ``track`` does on
-such masks (``Tracker.hold_thin_arms``): their rows then show what the other capsules do with the arms
-held.
+``iterations=100``); ``--hold-arms`` keeps the arms' radii out of the defect sets' fits (``fit_body(fixed=)``;
+``track`` instead fits them and puts them back after each fit on such masks, ``Tracker.hold_thin_arms``):
+their rows then show what the other capsules do with the arms held.
 """
 
 from __future__ import annotations
@@ -83,7 +83,7 @@ def clip_bodies(
     """One row per defect set (the clean fit first, always fitting every capsule): ``iou`` (float),
     ``radii`` (C,) m, and ``groups`` (the fit's bone groups, :func:`torchpf.calibrate.bone_groups`) labelled
     by their first bone's child joint. ``hold_arms``: the defect sets' fits keep the arms' radii as the
-    converted skeleton has them (``fixed=arm_bones(skeleton)``, what ``Tracker.hold_thin_arms`` does)."""
+    converted skeleton has them (``fixed=arm_bones(skeleton)``)."""
     from torchpf.calibrate import _iou, _model_masks, bone_groups
     from torchpf.camera import CameraRig
     from torchpf.detect import fit_body_to_frame
@@ -130,7 +130,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0, help="the defects' seed")
     parser.add_argument("--fit", default="", help="fit_body keywords, e.g. view_offset_sigma=1")
     parser.add_argument(
-        "--hold-arms", action="store_true", help="the defect sets' fits keep the arms' radii (as track does)"
+        "--hold-arms",
+        action="store_true",
+        help="the defect sets' fits keep the arms' radii (fit_body's fixed)",
     )
     parser.add_argument("--threads", type=int, default=1, help="torch threads per process")
     parser.add_argument("--jobs", type=int, default=1, help="clips fitted at a time (processes)")

@@ -1084,8 +1084,10 @@ FOREIGN_SETUPS: dict[str, Callable[..., Any]] = {
     "no_smooth": tracker_setup(smooth=False),
     # `track --torso-limit 0.5`: the converted skeleton's spine, neck and head held within 0.5 rad
     "torso_limit": tracker_setup(torso_limit=0.5),
-    # `track --hold-thin-arms 2`: the body fits keep the arms' widths where the masks show them < 2 px
-    "hold_thin_arms": tracker_setup(attributes={"hold_thin_arms": 2.0}),
+    # `track --hold-thin-arms none`: the arms' widths fitted like every capsule (the defaults to session 26)
+    "arms_fitted": tracker_setup(attributes={"hold_thin_arms": None}),
+    # the arms put back at the skeleton's radii where they project < 2 px, whatever the masks' noise
+    "hold_thin_arms_always": tracker_setup(attributes={"hold_arms_outline": 0.0}),
     # ---- AFTER (issue 11): add the new configurations here, one entry each, e.g.
     # "calibrated": fit the body (torchpf.calibrate.fit_body on the first frames, pose from truth.csv
     #               frame 0), then track with the fitted skeleton;

@@ -117,8 +117,9 @@ def _parser() -> argparse.ArgumentParser:
         "--hold-thin-arms",
         metavar="PX",
         help="when the body is fitted, keep the arms' capsule widths as the skeleton has them if the arms "
-        "project thinner than PX pixels (radius) in frame 0's masks, e.g. 2: coarse, noisy masks cannot "
-        "measure an arm a pixel or two across (default: none, the arms fitted like the rest)",
+        "project thinner than PX pixels (radius) in frame 0's masks and those masks' outlines stray more "
+        "than half a pixel from the body fitted to them: noisy masks cannot measure an arm a pixel or two "
+        "across; none: fit the arms like the rest (default: 2)",
     )
     tr.add_argument(
         "--no-smooth",

@@ -59,7 +59,14 @@ from torchpf.geometry import Capsules2D, project_capsules, sample_in_capsules
 from torchpf.kinematics.symmetry import mirror_limbs
 from torchpf.observations import Silhouettes
 
-__all__ = ["CalibrationReport", "bone_groups", "fit_body", "overlay_image", "projected_radii"]
+__all__ = [
+    "CalibrationReport",
+    "bone_groups",
+    "fit_body",
+    "outline_disagreement",
+    "overlay_image",
+    "projected_radii",
+]
 
 
 # ---------------------------------------------------------------------------------------------- groups
@@ -108,6 +115,33 @@ def projected_radii(skeleton, cameras: CameraRig, pose, size: tuple[int, int] | 
         seen = caps.valid[0].to(caps.ra.dtype)  # (V, C)
         radius = 0.5 * (caps.ra[0] + caps.rb[0])
         return ((radius * seen).sum(0) / seen.sum(0)).double()
+
+
+def outline_disagreement(skeleton, cameras: CameraRig, masks, pose) -> torch.Tensor:
+    """(V,) how far each mask's outline strays from the body's silhouette at ``pose`` (D,), in pixels: the
+    pixels where the body's rasterised silhouette and the mask disagree (symmetric difference) per pixel of
+    the mask's outline (its foreground pixels with a background pixel among their 8 neighbours). Every
+    disagreeing pixel lying along the outline, it is the outline's mean displacement; speckle, holes and
+    ragged edges add to it too. NaN for a camera whose mask is empty or missing.
+
+    With a body fitted to the masks (:func:`fit_body`) it says how well the masks can measure widths: on
+    the foreign renders of 11 CMU clips (160x120, frame 0 fitted at the true pose, mean over 3 cameras)
+    0.15-0.26 px for clean masks, 0.59-0.85 for the noisy preset's (``Tracker.hold_thin_arms``); a mask
+    grown or shrunk by one pixel strays one pixel more.
+
+    ``masks``: a (V, H, W) array or a list of V masks (None for a missing one), foreground ``> 0.5``
+    (``> 127`` as uint8); the rig is resized to their grid."""
+    arr, valid = _as_masks([list(masks)], 1)
+    target, valid = torch.from_numpy(arr[0] > 0.5), torch.from_numpy(valid[0])
+    V, H, W = target.shape
+    skeleton, rig = on_cpu(skeleton), on_cpu(cameras).resized(W, H)
+    with torch.no_grad():
+        joints = skeleton.fk(torch.as_tensor(pose, dtype=torch.float64).cpu().to(skeleton.radii.dtype))
+        model = torch.from_numpy(_model_masks(skeleton, rig, joints[None], skeleton.radii, H, W)[0])
+    inner = -torch.nn.functional.max_pool2d(-target[:, None].float(), 3, stride=1, padding=1)[:, 0] > 0.5
+    outline = (target & ~inner).sum((1, 2)).double()
+    wrong = (model ^ target).sum((1, 2)).double()
+    return torch.where(valid & (outline > 0), wrong / outline.clamp_min(1), torch.nan)
 
 
 def _ancestors(parents: Sequence[int]) -> torch.Tensor:
@@ -421,7 +455,8 @@ def fit_body(
         fixed: bones (indices into ``skeleton.bones``) whose radii are held as the skeleton has them: their
             groups' radii are not fitted (a group's bones share one radius, so holding one bone holds its
             mirror image too). For capsules the masks cannot measure, e.g. limbs a pixel or two across in
-            masks whose outlines move by a pixel (``Tracker.hold_thin_arms``).
+            masks whose outlines move by a pixel (``Tracker.hold_thin_arms`` puts such arms back after the
+            fit instead: on noisy foreign renders that tracked closer than holding them in it).
         refresh_every: steps between two choices of the pixels scored (:func:`_active_pixels`).
         progress: a tqdm progress bar over the iterations.
 

@@ -188,7 +188,7 @@ class Skeleton(nn.Module):
         self.parents: list[int] = self.tree.parents.tolist()
         self.dof_joints: list[int] = self.tree.dof_joint.tolist()
         self._compile(frames)
-        rest = self.fk(torch.zeros(len(self.dof_names), dtype=torch.float64))
+        rest = self.rest_joints()
         self._build_capsules(frames, body, rest, geometry, radii or {})
         self.tree = self.tree.replace(
             bones=torch.tensor(self.bones, dtype=torch.long).reshape(-1, 2),
@@ -552,6 +552,13 @@ class Skeleton(nn.Module):
         return flatten_batch(theta, 1)
 
     # ------------------------------------------------------------------ public API
+    def rest_joints(self) -> torch.Tensor:
+        """(J, 3) world positions (m) of the body joints in the rest pose (every DOF at 0), float64, detached:
+        what the structure-derived parts of the library (the partition, mirror limbs, arms, collision
+        pairs) read the body's layout from."""
+        with torch.no_grad():
+            return self.fk(torch.zeros(len(self.dof_names), dtype=torch.float64))
+
     def fk(self, theta: torch.Tensor) -> torch.Tensor:
         """World positions (m) of the body joints.
 

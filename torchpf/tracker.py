@@ -623,18 +623,27 @@ class Tracker(nn.Module):
     #: and "Round 11"). An option for bodies a user knows to be ordinary.
     fit_radius_sigma: float | None = None
 
-    #: ``track``'s body fits (frame 0 and the refit) keep the arms' capsule radii as the skeleton has them
-    #: (:func:`~torchpf.kinematics.anatomy.arm_bones`, ``fixed`` of :func:`~torchpf.calibrate.fit_body`) when
-    #: the arms' thickest capsule projects to a radius under this many pixels of frame 0's masks at the
-    #: initial pose (:func:`~torchpf.calibrate.projected_radii`, mean over the cameras; warned); None (the
-    #: default) fits them like every other capsule (``track --hold-thin-arms PX``). Masks whose outlines
-    #: move by a pixel do not measure an arm a pixel or two across: on noisy foreign renders (160x120, the
-    #: converted CMU skeleton's upper arms 1.1-1.6 px) the fit made the arms 1.3-2.4 times as thick as the
-    #: clean masks' fit does. Held at the converter's ``0.15 x`` bone length (2.0 px), ten noisy draws
-    #: tracked at 65.3 against 67.5 mm (paired -2.3, standard error 1.7), but clean masks, which do measure
-    #: the arms, at 29.7 against 26.9 (BENCHMARKS.md, "The arms' widths held"): an option for coarse, noisy
-    #: masks, not the default.
-    hold_thin_arms: float | None = None
+    #: ``track``'s bodies (fitted to frame 0, then refitted) keep the arms' capsule radii as the skeleton has
+    #: them (:func:`~torchpf.kinematics.anatomy.arm_bones`) when the masks cannot measure them: the arms'
+    #: thickest capsule projects to a radius under this many pixels of frame 0's masks at the initial pose
+    #: (:func:`~torchpf.calibrate.projected_radii`, mean over the cameras) *and* frame 0's masks are noisy,
+    #: their outlines straying from the body fitted to them by more than :attr:`hold_arms_outline` px
+    #: (:func:`~torchpf.calibrate.outline_disagreement`, mean over the cameras); warned. Each fit fits every
+    #: capsule; the arms' radii are put back after it. None fits the arms like every other capsule (``track
+    #: --hold-thin-arms PX|none``). Masks whose outlines move by a pixel do not measure an arm a pixel or two
+    #: across: on noisy foreign renders (160x120, the converted CMU skeleton's upper arms 1.1-1.6 px) the fit
+    #: made the arms 1.3-2.4 times as thick as the clean masks' fit does. Put back at the converter's ``0.15
+    #: x`` bone length after each fit, ten noisy draws tracked at 62.4 against 67.5 mm (paired -5.1,
+    #: standard error 1.3); held *during* the fits instead, 65.3 (paired -2.3, standard error 1.7). Clean
+    #: masks do measure the arms (held there too, 29.7 against 26.9 mm), hence the outline test, which holds
+    #: nothing on them (BENCHMARKS.md, "The arms put back after each fit").
+    hold_thin_arms: float | None = 2.0
+
+    #: The outline disagreement (px) of frame 0's masks with the body fitted to them, mean over the cameras,
+    #: above which :attr:`hold_thin_arms` holds thin arms. Frame 0 of the foreign renders of 11 CMU clips
+    #: (two draws of the defects, body fitted at the true pose): 0.15-0.26 px on clean masks, 0.59-0.85 with
+    #: the noisy preset's defects, 0.17-0.48 with any one of them alone (ragged edges and speckle the most).
+    hold_arms_outline: float = 0.5
 
     def with_skeleton(self, skeleton) -> Tracker:
         """The same tracker (all keywords alike) on another skeleton, e.g. a body fitted to the masks. It runs
@@ -690,11 +699,12 @@ class Tracker(nn.Module):
                 (:func:`torchpf.detect.fit_body_to_frame`), then again to the first :attr:`refit_frames`
                 frames at the poses tracked on that body (:meth:`_refit`), and track on the refitted body
                 (``result.skeleton``), starting from the initial pose (not a fit's refined one, which one
-                frame's mask defects move). ``None`` (default): only when the body looks uncalibrated
-                (:func:`torchpf.detect.looks_uncalibrated`: a converted skeleton's stick-figure capsules),
-                with a warning; on foreign renders of 3 CMU clips it took the hybrid tracker from 60 to 47 mm
-                on clean masks and 157 to 120 mm on noisy ones (BENCHMARKS.md). Needs cameras and a
-                silhouette likelihood.
+                frame's mask defects move). Arms too thin for noisy masks to measure get the skeleton's
+                widths back after both fits (:attr:`hold_thin_arms`). ``None`` (default): only when the
+                body looks uncalibrated (:func:`torchpf.detect.looks_uncalibrated`: a converted skeleton's
+                stick-figure capsules), with a warning; on foreign renders of 3 CMU clips it took the hybrid
+                tracker from 60 to 47 mm on clean masks and 157 to 120 mm on noisy ones (BENCHMARKS.md).
+                Needs cameras and a silhouette likelihood.
 
         Returns:
             :class:`TrackResult`; ``no_evidence`` flags the frames without usable observations.
@@ -759,7 +769,7 @@ class Tracker(nn.Module):
                     fps,
                     self.auto_refit_frames,
                     gate=True,
-                    held=self._held_arms(frames[0], pose),
+                    held=self._held_arms(frames[0], pose, fitted, pose),
                 )
                 tracker = self.with_skeleton(fitted)
                 result = tracker.track(
@@ -778,15 +788,10 @@ class Tracker(nn.Module):
         if how != "auto" and self._calibrates(calibrate, frames[0], init=how):
             from torchpf.detect import fit_body_to_frame
 
-            held = self._held_arms(frames[0], init)
-            fitted, _ = fit_body_to_frame(
-                self.skeleton,
-                self.cameras,
-                frames[0],
-                init,
-                radius_sigma=self.fit_radius_sigma,
-                fixed=held,
+            fitted, report = fit_body_to_frame(
+                self.skeleton, self.cameras, frames[0], init, radius_sigma=self.fit_radius_sigma
             )
+            held = self._held_arms(frames[0], init, fitted, report.poses[0])
             fitted, _, _ = self._refit(
                 fitted, fitted.clamp(init), frames, seed, fps, self.refit_frames, held=held
             )
@@ -982,29 +987,46 @@ class Tracker(nn.Module):
         pose, fitted, _ = detector.fit(frames[0], det=det, motion=motion)
         return pose, fitted if self._calibrates(calibrate, frames[0], init="auto") else None
 
-    def _held_arms(self, frame, pose) -> list[int]:
-        """The arm bones whose radii ``track``'s body fits hold (:attr:`hold_thin_arms`; warned), or []."""
+    def _held_arms(self, frame, pose, body, body_pose) -> list[int]:
+        """The arm bones whose radii ``track`` puts back after its body fits (:attr:`hold_thin_arms`;
+        warned), or []:
+        the arms project thin at ``pose`` on ``self.skeleton`` and frame 0's masks stray from ``body``
+        (fitted to them) at ``body_pose`` by more than :attr:`hold_arms_outline` px."""
         from torchpf.detect import silhouette_masks
 
         got = silhouette_masks(frame) if self.hold_thin_arms is not None else None
         bones = arm_bones(self.skeleton) if got is not None else []
         if not bones:
             return []
-        from torchpf.calibrate import projected_radii
+        from torchpf.calibrate import outline_disagreement, projected_radii
 
-        H, W = got[0].shape[-2:]
+        masks, valid = got
+        H, W = masks.shape[-2:]
         radius = projected_radii(self.skeleton, self.cameras, pose, (W, H))[bones]
         thickest = float(radius.nan_to_num(0.0).max())  # NaN: no camera sees it
         if not thickest < self.hold_thin_arms:
             return []
+        masks = [m if ok else None for m, ok in zip(masks, valid, strict=True)]
+        stray = float(outline_disagreement(body, self.cameras, masks, body_pose).nanmean())  # NaN: no mask
+        if not stray > self.hold_arms_outline:
+            return []
         warnings.warn(
             f"the arms' capsules project at most {thickest:.1f} px thick (radius) in frame 0's {W}x{H} "
-            f"masks, under hold_thin_arms={self.hold_thin_arms:g}: the body fit keeps their radii as the "
-            "skeleton has them (the masks cannot measure them); the arms are the limbs hanging off the "
-            "torso above the root, a guess from the skeleton's structure",
+            f"masks, whose outlines stray {stray:.2f} px from the body fitted to them (hold_thin_arms="
+            f"{self.hold_thin_arms:g}, hold_arms_outline={self.hold_arms_outline:g}): the fitted bodies get "
+            "the arms' radii back as the skeleton has them (the masks cannot measure them); the arms are the "
+            "limbs hanging off the torso above the root, a guess from the skeleton's structure",
             stacklevel=3,
         )
         return bones
+
+    def _with_held(self, body, held: list[int] | None):
+        """``body`` with the bones ``held`` (:meth:`_held_arms`) at the radii of the skeleton as given."""
+        if not held:
+            return body
+        radii = body.radii.detach().double().cpu().clone()
+        radii[held] = self.skeleton.radii.detach().double().cpu()[held]
+        return body.with_body(radii=radii)
 
     def _refit(
         self,
@@ -1026,7 +1048,8 @@ class Tracker(nn.Module):
         renders: group radii off by a factor of 2-3). So the first ``k`` frames are tracked on ``fitted``
         from ``pose``, and the body is fitted again to the frames with silhouettes among them at the
         tracked poses (:func:`torchpf.detect.fit_body_to_frame`, one pose per frame, each refined). The bones
-        ``held`` (:meth:`_held_arms`) keep the radii of the skeleton as given (``self.skeleton``) in both.
+        ``held`` (:meth:`_held_arms`) are fitted like the others, then put back at the radii of the skeleton
+        as given (``self.skeleton``), in ``fitted`` before the first pass and in the refitted body.
 
         ``gate`` (``init="auto"``): the same frames are tracked on the refitted body too, and it is kept
         only where its log evidence ``log p(z_1..k)`` is the higher; ``pose`` then becomes the refit's
@@ -1037,10 +1060,7 @@ class Tracker(nn.Module):
         ``pose`` is returned as it came. The passes use ``seed`` (not a caller's generator), so gated bodies
         are compared on the same random numbers. ``info``: ``frames``, ``refit`` (taken), and with the gate
         ``log_evidence`` (first body, refitted body)."""
-        if held:  # the auto-initialised body's arms were fitted by the detector: back to the skeleton's
-            radii = fitted.radii.detach().double().cpu().clone()
-            radii[held] = self.skeleton.radii.detach().double().cpu()[held]
-            fitted = fitted.with_body(radii=radii)
+        fitted = self._with_held(fitted, held)
         k = min(int(k), len(frames))
         if k < 2:
             return fitted, pose, {"frames": k, "refit": False}
@@ -1071,8 +1091,8 @@ class Tracker(nn.Module):
             before.angles[used].double(),
             view_offset_sigma=self.refit_view_offset,
             radius_sigma=self.fit_radius_sigma,
-            fixed=held or (),
         )
+        refit = self._with_held(refit, held)
         if not gate:
             return refit, pose, {"frames": len(used), "refit": True}
         start = report.poses[0].to(torch.float64) if used[0] == 0 else pose

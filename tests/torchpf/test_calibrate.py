@@ -13,7 +13,14 @@ import torch
 from torchpf import Skeleton
 from torchpf.__main__ import main
 from torchpf.assets import path
-from torchpf.calibrate import bone_groups, fit_body, projected_radii, scaled_joints
+from torchpf.calibrate import (
+    bone_groups,
+    fit_body,
+    outline_disagreement,
+    overlay_image,
+    projected_radii,
+    scaled_joints,
+)
 from torchpf.camera import camera_ring
 from torchpf.kinematics.anatomy import arm_bones
 from torchpf.sequence import SequenceData, write_sequence
@@ -258,6 +265,35 @@ def test_projected_radii_match_opencv(human, scene):
     assert np.allclose(got.numpy(), want, rtol=0.03)
     half = projected_radii(skel, rig, pose, (80, 60))
     assert torch.allclose(half, got / 2, rtol=1e-4)
+
+
+def test_outline_disagreement_in_pixels(scene):
+    """The masks' outline against the body's silhouette, in pixels: the count from OpenCV (the symmetric
+    difference read off ``overlay_image``'s colours, the outline as the mask minus its 3x3 ``cv2.erode``) per
+    camera; the true body on its own masks (another rasteriser) strays under 0.1 px, and the same masks
+    grown or shrunk by one pixel 0.9-1.15 px more (a one-pixel move of the whole outline); the stick figure
+    (radii a quarter) more than 2 px; a missing or empty mask is NaN."""
+    import cv2
+
+    rig, truth, poses, masks = scene["rig"], scene["truth"], scene["poses"], scene["masks"]
+    kernel = np.ones((3, 3), np.uint8)
+    for f in range(N_FRAMES):
+        got = outline_disagreement(truth, rig, masks[f], poses[f])
+        tiles = np.split(overlay_image(truth, rig, masks[f], poses[f]), len(rig.cameras), axis=1)
+        for v, tile in enumerate(tiles):
+            mask = (masks[f][v] > 127).astype(np.uint8)
+            wrong = (tile[:, :, 2] == 230).sum() + (tile[:, :, 0] == 110).sum()  # model only + mask only
+            outline = (mask.astype(bool) & ~cv2.erode(mask, kernel).astype(bool)).sum()
+            assert float(got[v]) == pytest.approx(wrong / outline, rel=1e-9)
+        assert float(got.max()) < 0.1
+        for grow in (cv2.dilate, cv2.erode):
+            moved = np.stack([grow(m, kernel) for m in masks[f]])
+            more = outline_disagreement(truth, rig, moved, poses[f]) - got
+            assert 0.9 < float(more.min()) and float(more.max()) < 1.15, grow.__name__
+        assert float(outline_disagreement(scene["stick"], rig, masks[f], poses[f]).min()) > 2.0
+    partial = [masks[0][0], None, np.zeros_like(masks[0][2])]
+    got = outline_disagreement(truth, rig, partial, poses[0])
+    assert torch.isfinite(got[0]) and torch.isnan(got[1:]).all()
 
 
 def test_fit_lengths_recovers_longer_thighs(human, scene):

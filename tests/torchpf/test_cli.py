@@ -135,8 +135,9 @@ def test_track_torso_limit_option(seq_dir, tmp_path, capsys, monkeypatch):
 
 
 def test_track_hold_thin_arms_option(seq_dir, tmp_path, capsys, monkeypatch):
-    """``--hold-thin-arms PX`` sets the tracker's attribute (the body fits'), ``none`` or no option leaves
-    the default (None); a word or a non-positive number is a one-line error naming the option."""
+    """``--hold-thin-arms PX`` sets the tracker's attribute (the body fits'), ``none`` turns it off, no
+    option leaves the default (2 px); a word or a non-positive number is a one-line error naming the
+    option."""
     import torchpf.tracker as tracker_module
 
     track = ["track", str(seq_dir), "--skeleton", str(path("human.urdf")), "--out", str(tmp_path / "t.csv")]
@@ -153,7 +154,7 @@ def test_track_hold_thin_arms_option(seq_dir, tmp_path, capsys, monkeypatch):
         assert main([*track, *quick, "--hold-thin-arms", given]) == 0
         assert seen[-1] == expected
     assert main([*track, *quick]) == 0
-    assert seen[-1] is None
+    assert seen[-1] == 2.0
 
 
 def test_track_with_auto_temperature(seq_dir, tmp_path, capsys):

@@ -30,6 +30,22 @@ def case():
 
 
 @pytest.fixture(scope="module")
+def noisy_frames(case):
+    """The case's frames with the noisy preset's mask defects (``benchmarks.foreign.degrade``, seed 0)."""
+    import numpy as np
+
+    from benchmarks.foreign import PRESETS, degrade
+
+    rng = np.random.default_rng(0)
+    out = []
+    for frame in case.frames:
+        masks = (frame.silhouettes.masks.numpy() * 255).astype(np.uint8)
+        bad = np.stack([degrade(m, PRESETS["noisy"], rng) for m in masks]) > 127
+        out.append(Frame(silhouettes=Silhouettes(torch.from_numpy(bad).float())))
+    return out
+
+
+@pytest.fixture(scope="module")
 def detector(case):
     return PersonDetector(case.skeleton, case.cameras)
 
@@ -354,7 +370,7 @@ def test_cli_init_auto_without_truth(case, tmp_path, capsys):
     assert "fitted the body to the first frames" in capsys.readouterr().out
 
 
-def test_track_fits_an_uncalibrated_body_at_the_initial_pose(case, device):
+def test_track_fits_an_uncalibrated_body_at_the_initial_pose(case, noisy_frames, device):
     """A converted skeleton's stick-figure body is fitted to frame 0's masks at the given pose, then again
     to the first frames at the poses tracked on it (warned; result.skeleton is the refitted body);
     calibrate=False tracks the body as given. On ``device``: the fits run on CPU copies, the track (and
@@ -378,8 +394,8 @@ def test_track_fits_an_uncalibrated_body_at_the_initial_pose(case, device):
     def fitting(skeleton, cameras, obs, pose, **options):
         asked.append(options)
         fits.append((obs, torch.as_tensor(pose).clone()))
-        fits[-1] += fit(skeleton, cameras, obs, pose, **options)
-        return fits[-1][2:]
+        fits[-1] += (*fit(skeleton, cameras, obs, pose, **options), skeleton)  # body, report, body fitted
+        return fits[-1][2:4]
 
     medians, made = [], TrajectorySmoother.__init__
 
@@ -440,31 +456,57 @@ def test_track_fits_an_uncalibrated_body_at_the_initial_pose(case, device):
     asked.clear()
     spied(frames)
     assert len(fits) == 2 and [a["radius_sigma"] for a in asked] == [0.25, 0.25]
-    # the arms fitted like every capsule by default; with hold_thin_arms (2 px) the case's 160x120 masks show
-    # the converted arms at most ~1.6 px thick: both fits hold their radii, and the body tracked keeps the
-    # converter's
-    assert [list(a["fixed"]) for a in asked] == [[], []]
+    # the arms: the case's clean masks measure them (their outlines within 0.5 px of the body fitted to
+    # them), so the tracked body keeps the refit's arms; on the same frames with the noisy preset's defects
+    # the converted arms (at most ~1.6 px thick at 160x120) are put back at the skeleton's radii after each
+    # fit: the refit starts from a frame-0 body with them, and the body tracked has them
     arms = arm_bones(case.skeleton)
-    tracker.fit_radius_sigma, tracker.hold_thin_arms = None, 2.0
-    asked.clear()
-    spied(frames)
-    assert arms and [list(a["fixed"]) for a in asked] == [arms, arms]
-    assert torch.allclose(fits[1][2].radii[arms].double(), skeleton.radii[arms].double().cpu(), rtol=1e-6)
+    tracker.fit_radius_sigma = None
+    fits.clear()
+    result = spied(frames)
+    assert arms and torch.equal(result.skeleton.radii[arms].cpu(), fits[1][2].radii[arms].cpu())
+    assert not torch.allclose(result.skeleton.radii[arms].double().cpu(), skeleton.radii[arms].double().cpu())
+    result = spied(noisy_frames[:4])
+    converter = skeleton.radii[arms].double().cpu()
+    assert not torch.allclose(fits[0][2].radii[arms].double(), converter, rtol=0.05)  # the fit moved them
+    assert len(fits) == 2 and fits[1][2] is not result.skeleton
+    assert torch.allclose(fits[1][4].radii[arms].double(), converter, rtol=1e-6)  # the refit's start
+    assert torch.allclose(result.skeleton.radii[arms].double().cpu(), converter, rtol=1e-6)
+    others = [b for b in range(len(skeleton.bones)) if b not in arms]
+    assert torch.equal(result.skeleton.radii[others].cpu(), fits[1][2].radii[others].cpu())
+    tracker.hold_thin_arms = None  # off: the noisy masks' arms fitted
+    result = spied(noisy_frames[:4])
+    assert torch.equal(result.skeleton.radii[arms].cpu(), fits[1][2].radii[arms].cpu())
 
 
-def test_the_arms_are_held_only_where_the_masks_are_too_coarse_to_measure_them(case):
-    """``Tracker.hold_thin_arms`` (2 px): on the case's 160x120 masks the converted arms' thickest capsule
-    projects under 2 px and they are held, warned; the same masks at 4x the size (640x480) show it at 4x
-    that and nothing is held, silently; no masks, or the option off (the default), nothing held."""
+def test_the_arms_are_held_only_where_the_masks_cannot_measure_them(case, noisy_frames):
+    """``Tracker.hold_thin_arms`` (2 px, the default): the converted arms' thickest capsule projects under
+    2 px in the case's 160x120 masks, but the clean masks' outlines lie within 0.5 px
+    (``hold_arms_outline``) of the body fitted to them: nothing held, silently. The same frame with the
+    noisy preset's defects strays further: held, warned with both figures. Those masks at 4x the size show
+    the arms at 4x that: nothing held; no masks, or the option off, nothing held."""
+    from torchpf.detect import fit_body_to_frame
+
     tracker = Tracker(case.skeleton, case.cameras, n_particles=10, fps=30.0, progress=False)
-    assert tracker.hold_thin_arms is None and tracker._held_arms(case.frames[0], case.angles[0]) == []
-    tracker.hold_thin_arms = 2.0
-    masks = case.frames[0].silhouettes.masks
-    with pytest.warns(UserWarning, match=r"arms' capsules project at most 1\.\d px .* 160x120"):
-        held = tracker._held_arms(case.frames[0], case.angles[0])
+    assert tracker.hold_thin_arms == 2.0 and tracker.hold_arms_outline == 0.5
+    pose = case.angles[0]
+    bodies = {
+        name: fit_body_to_frame(case.skeleton, case.cameras, frame, pose)
+        for name, frame in (("clean", case.frames[0]), ("noisy", noisy_frames[0]))
+    }
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        body, report = bodies["clean"]
+        assert tracker._held_arms(case.frames[0], pose, body, report.poses[0]) == []
+    body, report = bodies["noisy"]
+    with pytest.warns(UserWarning, match=r"project at most 1\.\d px .* 160x120 masks, whose outlines stray"):
+        held = tracker._held_arms(noisy_frames[0], pose, body, report.poses[0])
     assert held == arm_bones(case.skeleton)
+    masks = noisy_frames[0].silhouettes.masks
     fine = Frame(silhouettes=Silhouettes(masks.repeat_interleave(4, -1).repeat_interleave(4, -2)))
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        assert tracker._held_arms(fine, case.angles[0]) == []
-        assert tracker._held_arms(Frame(), case.angles[0]) == []
+        assert tracker._held_arms(fine, pose, body, report.poses[0]) == []
+        assert tracker._held_arms(Frame(), pose, body, report.poses[0]) == []
+        tracker.hold_thin_arms = None
+        assert tracker._held_arms(noisy_frames[0], pose, body, report.poses[0]) == []

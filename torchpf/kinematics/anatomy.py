@@ -20,8 +20,8 @@ ten draws at 66.6 mm against 67.5 (paired -0.9, standard error 1.4) with more fr
 --torso-limit 0.5``).
 
 The arms (:func:`arm_bones`) are the limbs that hang off the torso chain above the root in the rest pose
-(the legs hang off the root or the pelvis): ``Tracker.hold_thin_arms`` keeps their capsules' widths out of
-the body fit where the masks are too coarse to measure them.
+(the legs hang off the root or the pelvis): ``Tracker.hold_thin_arms`` keeps their capsules' widths as the
+skeleton has them where the masks are too coarse and noisy to measure them.
 
 Example::
 
@@ -87,8 +87,7 @@ def arm_bones(skeleton) -> list[int]:
     for a skeleton without such limbs."""
     tree = skeleton.tree
     part, parents = tree.joint_part.tolist(), tree.parents.tolist()
-    with torch.no_grad():
-        rest = skeleton.fk(torch.zeros(len(skeleton.dof_names), dtype=torch.float64)).double()
+    rest = skeleton.rest_joints()
     roots = [j for j, p in enumerate(parents) if p < 0]
     if not roots:
         return []

@@ -88,7 +88,7 @@ def mirror_limbs(
     tree = skeleton.tree
     parents = tree.parents.tolist()
     kids = children_of(parents)
-    rest = skeleton.fk(torch.zeros(len(skeleton.dof_names), dtype=torch.float64)).detach().cpu()
+    rest = skeleton.rest_joints().cpu()
     limbs = body_partition(tree, per_limb=True, joints=True)[1:]
     orders = []
     for limb in limbs:  # a limb's root is its joint whose parent is outside it (on the torso)

@@ -64,7 +64,7 @@ def limb_torso_pairs(skeleton, clearance: float = 0.0) -> list[tuple[int, int]]:
     limbs = {j for p in parts[1:] for j in p}
     bones = [tuple(b) for b in skeleton.bones]
     radii = skeleton.radii.detach().cpu().to(torch.float64)
-    rest = skeleton.fk(torch.zeros(len(skeleton.dof_names), dtype=torch.float64)).detach().cpu()
+    rest = skeleton.rest_joints().cpu()
     torso_caps = [c for c, (_, child) in enumerate(bones) if child in torso and radii[c] > 0]
     limb_caps = [c for c, (_, child) in enumerate(bones) if child in limbs and radii[c] > 0]
     pairs = []

@@ -34,6 +34,18 @@ def test_fk_matches_pytorch_kinematics(skel, dtype, tol, random_poses):
     assert (skel.transforms(theta) - ref).abs().max().item() < tol
 
 
+def test_rest_joints_are_pytorch_kinematics_at_zero(skel):
+    """The rest pose the structure-derived code reads: pytorch-kinematics' joints at every DOF 0, float64,
+    without a graph; a body with other widths and a longer stature (``with_body``) has its own."""
+    rest = skel.rest_joints()
+    ref = pk_reference(skel, torch.zeros(1, len(skel.dof_names), dtype=torch.float64))[0, :, :3, 3]
+    assert rest.dtype == torch.float64 and not rest.requires_grad
+    assert (rest - ref).abs().max().item() < 1e-10
+    taller = skel.with_body(scale=1.1).rest_joints()
+    root = skel.parents.index(-1)
+    assert torch.allclose(taller - taller[root], 1.1 * (rest - rest[root]), atol=1e-9)
+
+
 def test_leading_batch_dims_and_single_pose(skel, random_poses):
     theta = random_poses(skel, (2, 3, 5), torch.float64)
     out = skel.fk(theta)
