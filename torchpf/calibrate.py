@@ -131,7 +131,8 @@ def outline_disagreement(skeleton, cameras: CameraRig, masks, pose) -> torch.Ten
 
     ``masks``: a (V, H, W) array or a list of V masks (None for a missing one), foreground ``> 0.5``
     (``> 127`` as uint8); the rig is resized to their grid."""
-    arr, valid = _as_masks([list(masks)], 1)
+    masks = [m.detach().cpu() if isinstance(m, torch.Tensor) else m for m in masks]  # masks on any device
+    arr, valid = _as_masks([masks], 1)
     target, valid = torch.from_numpy(arr[0] > 0.5), torch.from_numpy(valid[0])
     V, H, W = target.shape
     skeleton, rig = on_cpu(skeleton), on_cpu(cameras).resized(W, H)

@@ -6,6 +6,8 @@ realistic radii and 4 % taller; the fit starts from the same skeleton with radii
 converted stick figure) and scale 1.
 """
 
+import copy
+
 import numpy as np
 import pytest
 import torch
@@ -294,6 +296,17 @@ def test_outline_disagreement_in_pixels(scene):
     partial = [masks[0][0], None, np.zeros_like(masks[0][2])]
     got = outline_disagreement(truth, rig, partial, poses[0])
     assert torch.isfinite(got[0]) and torch.isnan(got[1:]).all()
+
+
+def test_outline_disagreement_where_the_tracker_runs(scene, device):
+    """Masks, skeleton and rig on the tracker's device give the CPU's figures (the rasterisation runs on
+    CPU copies)."""
+    rig, truth, poses, masks = scene["rig"], scene["truth"], scene["poses"], scene["masks"]
+    want = outline_disagreement(truth, rig, masks[1], poses[1])
+    there = torch.from_numpy(masks[1]).to(device)
+    moved = copy.deepcopy(truth).to(device), copy.deepcopy(rig).to(device)  # the fixture's stay put
+    got = outline_disagreement(*moved, there, poses[1].to(device))
+    assert torch.equal(got, want)
 
 
 def test_fit_lengths_recovers_longer_thighs(human, scene):
