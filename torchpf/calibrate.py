@@ -102,14 +102,22 @@ def bone_groups(skeleton, *, tol: float = 0.1) -> list[list[int]]:
 
 
 # ---------------------------------------------------------------------------------------------- model
+def _posed(skeleton, cameras: CameraRig, pose, size: tuple[int, int] | None = None):
+    """CPU copies of ``skeleton`` and of the rig (resized to the masks' grid ``size`` (W, H) when given),
+    and the joints (J, 3) at ``pose`` (D,), without a graph."""
+    skeleton, rig = on_cpu(skeleton), on_cpu(cameras)
+    rig = rig.resized(*size) if size is not None else rig
+    with torch.no_grad():
+        joints = skeleton.fk(torch.as_tensor(pose, dtype=torch.float64).cpu().to(skeleton.radii.dtype))
+    return skeleton, rig, joints
+
+
 def projected_radii(skeleton, cameras: CameraRig, pose, size: tuple[int, int] | None = None) -> torch.Tensor:
     """(C,) each capsule's radius in pixels at ``pose`` (D,): the mean over its two ends and over the cameras
     that see it in front (pinhole: ``f r / z`` at each end), with the rig resized to ``size`` (W, H), the
     masks' grid, when given. NaN for a capsule no camera sees."""
-    skeleton, cameras = on_cpu(skeleton), on_cpu(cameras)
-    rig = cameras.resized(*size) if size is not None else cameras
+    skeleton, rig, joints = _posed(skeleton, cameras, pose, size)
     with torch.no_grad():
-        joints = skeleton.fk(torch.as_tensor(pose, dtype=torch.float64).cpu().to(skeleton.radii.dtype))
         bones = skeleton.tree.bones
         caps = project_capsules(rig, joints[None, bones[:, 0]], joints[None, bones[:, 1]], skeleton.radii)
         seen = caps.valid[0].to(caps.ra.dtype)  # (V, C)
@@ -135,10 +143,8 @@ def outline_disagreement(skeleton, cameras: CameraRig, masks, pose) -> torch.Ten
     arr, valid = _as_masks([masks], 1)
     target, valid = torch.from_numpy(arr[0] > 0.5), torch.from_numpy(valid[0])
     V, H, W = target.shape
-    skeleton, rig = on_cpu(skeleton), on_cpu(cameras).resized(W, H)
-    with torch.no_grad():
-        joints = skeleton.fk(torch.as_tensor(pose, dtype=torch.float64).cpu().to(skeleton.radii.dtype))
-        model = torch.from_numpy(_model_masks(skeleton, rig, joints[None], skeleton.radii, H, W)[0])
+    skeleton, rig, joints = _posed(skeleton, cameras, pose, (W, H))
+    model = torch.from_numpy(_model_masks(skeleton, rig, joints[None], skeleton.radii, H, W)[0])
     inner = -torch.nn.functional.max_pool2d(-target[:, None].float(), 3, stride=1, padding=1)[:, 0] > 0.5
     outline = (target & ~inner).sum((1, 2)).double()
     wrong = (model ^ target).sum((1, 2)).double()

@@ -989,9 +989,8 @@ class Tracker(nn.Module):
 
     def _held_arms(self, frame, pose, body, body_pose) -> list[int]:
         """The arm bones whose radii ``track`` puts back after its body fits (:attr:`hold_thin_arms`;
-        warned), or []:
-        the arms project thin at ``pose`` on ``self.skeleton`` and frame 0's masks stray from ``body``
-        (fitted to them) at ``body_pose`` by more than :attr:`hold_arms_outline` px."""
+        warned), or []: the arms project thin at ``pose`` on ``self.skeleton`` and frame 0's masks stray
+        from ``body`` (fitted to them) at ``body_pose`` by more than :attr:`hold_arms_outline` px."""
         from torchpf.detect import silhouette_masks
 
         got = silhouette_masks(frame) if self.hold_thin_arms is not None else None
